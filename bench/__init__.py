@@ -1,0 +1,1 @@
+"""Benchmarks of uav_vs's hot paths (`make bench`)."""

@@ -1,0 +1,44 @@
+"""Shared fixtures: third-party data and an isolated ROS domain per test process."""
+import fcntl
+import os
+from pathlib import Path
+
+import pytest
+
+from uav_vs.datasets import HOW_TO_GET, shared_data_dir
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _claim_ros_domain() -> int:
+    """Hold a lock on a free ROS_DOMAIN_ID (1..200) for this process's lifetime."""
+    lock_dir = Path('/tmp/uav_vs_ros_domains')
+    lock_dir.mkdir(exist_ok=True)
+    start = os.getpid() % 200
+    for k in range(200):
+        domain = 1 + (start + k) % 200
+        fd = os.open(lock_dir / f'{domain}.lock', os.O_CREAT | os.O_RDWR)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            continue
+        return domain  # the fd stays open: the lock lasts as long as the process
+    raise RuntimeError('no free ROS_DOMAIN_ID in 1..200')
+
+
+# Before anything imports rclpy: every test process (xdist worker) gets its own domain.
+os.environ['ROS_DOMAIN_ID'] = str(_claim_ros_domain())
+os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', str(REPO / 'config' / 'fastdds_shm.xml'))
+
+
+@pytest.fixture(scope='session')
+def shared_data() -> Path:
+    """The third-party data folder; CI must have it, elsewhere the test skips."""
+    path = shared_data_dir()
+    if path is None:
+        if os.environ.get('CI'):
+            pytest.fail(HOW_TO_GET)
+        pytest.skip(HOW_TO_GET)
+    return path
