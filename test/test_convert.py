@@ -1,0 +1,72 @@
+"""Message <-> numpy conversions: exact round trips, clear errors on malformed input."""
+import cv2
+import numpy as np
+import pytest
+from sensor_msgs.msg import CompressedImage, Image
+from std_msgs.msg import Header
+
+from uav_vs.ros import convert as cv
+
+RNG = np.random.default_rng(7)
+BGR = RNG.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+
+
+def test_image_round_trip_and_encodings():
+    header = Header(frame_id='cam1_optical')
+    msg = cv.bgr_to_image(BGR, header)
+    assert (msg.width, msg.height, msg.encoding, msg.step) == (64, 48, 'bgr8', 192)
+    assert np.array_equal(cv.image_to_bgr(msg, (64, 48)), BGR)
+    rgb = Image(height=48, width=64, encoding='rgb8', step=192)
+    rgb.data = BGR[:, :, ::-1].tobytes()
+    assert np.array_equal(cv.image_to_bgr(rgb), BGR)
+    mono = Image(height=48, width=64, encoding='mono8', step=64)
+    mono.data = BGR[:, :, 0].tobytes()
+    assert np.array_equal(cv.image_to_bgr(mono)[:, :, 2], BGR[:, :, 0])
+
+
+def test_padded_rows_are_read_correctly():
+    padded = np.zeros((48, 200), np.uint8)
+    padded[:, :192] = BGR.reshape(48, 192)
+    msg = Image(height=48, width=64, encoding='bgr8', step=200)
+    msg.data = padded.tobytes()
+    assert np.array_equal(cv.image_to_bgr(msg), BGR)
+
+
+@pytest.mark.parametrize('encoding, width, data_len, match', [
+    ('16UC1', 64, 48 * 128, "unsupported encoding '16UC1'"),
+    ('bgr8', 32, 48 * 96, 'image is 32x48, expected 64x48'),
+    ('bgr8', 64, 100, 'image data too short'),
+])
+def test_malformed_images_raise(encoding, width, data_len, match):
+    msg = Image(height=48, width=width, encoding=encoding, step=data_len // 48)
+    msg.data = bytes(data_len)
+    with pytest.raises(cv.MessageError, match=match):
+        cv.image_to_bgr(msg, (64, 48))
+
+
+def test_compressed_round_trip_and_garbage():
+    smooth = cv2.GaussianBlur(BGR, (0, 0), 4)
+    out = cv.compressed_to_bgr(cv.bgr_to_compressed(smooth, Header(), quality=95), (64, 48))
+    assert np.abs(out.astype(int) - smooth).mean() < 1.5
+    png = CompressedImage(format='png')
+    png.data = cv2.imencode('.png', BGR)[1].tobytes()
+    assert np.array_equal(cv.compressed_to_bgr(png), BGR)
+    bad = CompressedImage(format='jpeg')
+    bad.data = b'not an image'
+    with pytest.raises(cv.MessageError, match='cannot decode'):
+        cv.compressed_to_bgr(bad)
+
+
+def test_polygon_pose_twist_and_stamp_round_trips():
+    pts = np.array([[1.5, 2.25, 0.5], [np.nan, np.nan, 0.0]])
+    back = cv.polygon_to_array(cv.points_to_polygon(pts, Header()))
+    assert np.array_equal(back, pts, equal_nan=True)
+    q = np.array([0.0, 0.0, np.sin(0.4), np.cos(0.4)])
+    pos, quat = cv.msg_to_pose(cv.pose_to_msg(np.array([1.0, -2.0, 3.0]), q, Header()))
+    assert np.array_equal(pos, [1.0, -2.0, 3.0]) and np.array_equal(quat, q)
+    assert cv.yaw_of(q) == pytest.approx(0.8)
+    lin, ang = cv.msg_to_twist(cv.twist_to_msg(np.array([1.0, 2, 3]), np.array([0, 0, 0.5]),
+                                               Header()))
+    assert np.array_equal(lin, [1, 2, 3]) and ang[2] == 0.5
+    ns = 1_700_000_000_123_456_789
+    assert cv.stamp_to_ns(cv.ns_to_stamp(ns)) == ns

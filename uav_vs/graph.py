@@ -1,0 +1,47 @@
+"""Start and stop the graph's nodes as separate processes, the way `ros2 run` would.
+
+There is no `launch` on PyPI; this is the small part of it the demo, the tests and
+the benchmarks need: start an executable with `--ros-args ...`, log its output to a
+file, and stop it with SIGINT, escalating to SIGTERM and SIGKILL.
+"""
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+
+def executable(name: str) -> str:
+    """Path of a console script: the venv's bin/ first, then PATH."""
+    here = Path(sys.prefix) / 'bin' / name
+    found = str(here) if here.exists() else shutil.which(name)
+    if found is None:
+        raise FileNotFoundError(f'executable {name!r} not found (is the package installed?)')
+    return found
+
+
+def start(name: str, ros_args: list[str], log_dir: Path, label: str | None = None,
+          env: dict[str, str] | None = None) -> subprocess.Popen:
+    """Start `name --ros-args ros_args`, stdout and stderr to log_dir/<label>.log."""
+    log_dir.mkdir(parents=True, exist_ok=True)
+    log = open(log_dir / f'{label or name}.log', 'wb')
+    argv = [executable(name), '--ros-args', *ros_args] if ros_args else [executable(name)]
+    proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
+                            env={**os.environ, **(env or {})})
+    log.close()
+    return proc
+
+
+def stop(procs: list[subprocess.Popen], timeout: float = 5.0) -> list[int]:
+    """SIGINT every process, then SIGTERM, then SIGKILL the ones still alive; return codes."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+        alive = [p for p in procs if p.poll() is None]
+        for p in alive:
+            p.send_signal(sig)
+        for p in alive:
+            try:
+                p.wait(timeout)
+            except subprocess.TimeoutExpired:
+                pass
+    return [p.returncode for p in procs]

@@ -1,0 +1,131 @@
+"""The one place that converts between ROS messages and numpy.
+
+Images follow the measured fast paths: `np.frombuffer` to read (zero copy) and
+`tobytes()` to fill (never assign an ndarray to `msg.data`).
+"""
+import math
+
+import cv2
+import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point32, Polygon, PolygonStamped, PoseStamped, TwistStamped
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from std_msgs.msg import Header
+
+_CHANNELS = {'bgr8': 3, 'rgb8': 3, 'bgra8': 4, 'rgba8': 4, 'mono8': 1}
+
+
+class MessageError(ValueError):
+    """A message cannot be converted; str() says why in one line."""
+
+
+def stamp_to_ns(stamp: Time) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def ns_to_stamp(ns: int) -> Time:
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def image_to_bgr(msg: Image, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+    """sensor_msgs/Image (bgr8, rgb8, bgra8, rgba8, mono8) to a BGR uint8 array.
+
+    `expected_size` is (width, height); anything else raises MessageError.
+    """
+    channels = _CHANNELS.get(msg.encoding)
+    if channels is None:
+        raise MessageError(f'unsupported encoding {msg.encoding!r} '
+                           f'(expected one of {", ".join(_CHANNELS)})')
+    _check_size(msg.width, msg.height, expected_size)
+    row = msg.width * channels
+    if msg.step < row or len(msg.data) < msg.step * msg.height:
+        raise MessageError(f'image data too short: {len(msg.data)} bytes for '
+                           f'{msg.width}x{msg.height} {msg.encoding} step {msg.step}')
+    buf = np.frombuffer(msg.data, np.uint8, count=msg.step * msg.height)
+    img = buf.reshape(msg.height, msg.step)[:, :row].reshape(msg.height, msg.width, channels)
+    if msg.encoding == 'bgr8':
+        return img
+    code = {'rgb8': cv2.COLOR_RGB2BGR, 'bgra8': cv2.COLOR_BGRA2BGR,
+            'rgba8': cv2.COLOR_RGBA2BGR, 'mono8': cv2.COLOR_GRAY2BGR}[msg.encoding]
+    return cv2.cvtColor(img, code)
+
+
+def compressed_to_bgr(msg: CompressedImage,
+                      expected_size: tuple[int, int] | None = None) -> np.ndarray:
+    """sensor_msgs/CompressedImage (jpeg, png) to a BGR uint8 array."""
+    img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise MessageError(f'cannot decode compressed image (format {msg.format!r}, '
+                           f'{len(msg.data)} bytes)')
+    _check_size(img.shape[1], img.shape[0], expected_size)
+    return img
+
+
+def bgr_to_image(img: np.ndarray, header: Header) -> Image:
+    """BGR uint8 array to sensor_msgs/Image (bgr8)."""
+    msg = Image(header=header, height=img.shape[0], width=img.shape[1], encoding='bgr8',
+                is_bigendian=0, step=img.shape[1] * 3)
+    msg.data = np.ascontiguousarray(img).tobytes()
+    return msg
+
+
+def bgr_to_compressed(img: np.ndarray, header: Header, quality: int = 90) -> CompressedImage:
+    ok, buf = cv2.imencode('.jpg', img, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    msg = CompressedImage(header=header, format='jpeg')
+    msg.data = buf.tobytes()
+    return msg
+
+
+def points_to_polygon(points: np.ndarray, header: Header) -> PolygonStamped:
+    """(n, 2|3) float array to PolygonStamped; missing coordinates stay NaN."""
+    pts = np.asarray(points, np.float64)
+    z = pts[:, 2] if pts.shape[1] > 2 else np.zeros(len(pts))
+    return PolygonStamped(header=header, polygon=Polygon(points=[
+        Point32(x=float(x), y=float(y), z=float(w)) for x, y, w in zip(pts[:, 0], pts[:, 1], z)]))
+
+
+def polygon_to_array(msg: PolygonStamped) -> np.ndarray:
+    """PolygonStamped to an (n, 3) float array."""
+    return np.array([(p.x, p.y, p.z) for p in msg.polygon.points], np.float64).reshape(-1, 3)
+
+
+def pose_to_msg(position: np.ndarray, quaternion_xyzw: np.ndarray, header: Header) -> PoseStamped:
+    msg = PoseStamped(header=header)
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = map(float, position)
+    q = msg.pose.orientation
+    q.x, q.y, q.z, q.w = map(float, quaternion_xyzw)
+    return msg
+
+
+def msg_to_pose(msg: PoseStamped) -> tuple[np.ndarray, np.ndarray]:
+    """PoseStamped to (position (3,), quaternion xyzw (4,))."""
+    p, q = msg.pose.position, msg.pose.orientation
+    return np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w])
+
+
+def yaw_of(quaternion_xyzw: np.ndarray) -> float:
+    """Yaw (rotation about z, rad) of an xyzw quaternion."""
+    x, y, z, w = quaternion_xyzw
+    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def twist_to_msg(linear: np.ndarray, angular: np.ndarray, header: Header) -> TwistStamped:
+    msg = TwistStamped(header=header)
+    msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z = map(float, linear)
+    msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z = map(float, angular)
+    return msg
+
+
+def msg_to_twist(msg: TwistStamped) -> tuple[np.ndarray, np.ndarray]:
+    v, w = msg.twist.linear, msg.twist.angular
+    return np.array([v.x, v.y, v.z]), np.array([w.x, w.y, w.z])
+
+
+def camera_info(fields: dict, header: Header) -> CameraInfo:
+    """CameraInfo from `Camera.camera_info_fields()`."""
+    return CameraInfo(header=header, **fields)
+
+
+def _check_size(width: int, height: int, expected: tuple[int, int] | None) -> None:
+    if expected is not None and (width, height) != tuple(expected):
+        raise MessageError(f'image is {width}x{height}, expected {expected[0]}x{expected[1]}')
