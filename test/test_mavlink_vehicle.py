@@ -1,0 +1,180 @@
+"""The simulated ArduCopter on its own, driven by a bare pymavlink GCS (not the relay).
+
+Checks the Copter behaviour the relay has to cope with: no streams until asked,
+ACK codes and reasons, velocity targets ignored on the ground, aborting a takeoff,
+GUID_TIMEOUT coasting, silent stop-and-hold on bad targets, nose-into-travel when yaw
+is ignored, and the console script as a process.
+"""
+import math
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from uav_vs.autopilot.link import mavlink, open_connection
+from uav_vs.sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
+
+VEL_YAW_RATE, VEL_ONLY = 0x05C7, 0x0DC7
+
+
+class Gcs:
+    """A bare GCS over UDP: send commands, wait for their ACK."""
+
+    def __init__(self, port: int):
+        self.conn = open_connection(f'udpout:127.0.0.1:{port}', source_system=250)
+        self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+
+    def command(self, command, *params):
+        """MAV_RESULT of a COMMAND_LONG; STATUSTEXT seen meanwhile goes to self.texts."""
+        p = (list(params) + [0.0] * 7)[:7]
+        self.conn.mav.command_long_send(1, 1, command, 0, *p)
+        self.texts = []
+        while (msg := self.conn.recv_match(type=['COMMAND_ACK', 'STATUSTEXT'], blocking=True,
+                                           timeout=2.0)) is not None:
+            if msg.get_type() == 'STATUSTEXT':
+                self.texts.append(msg.text)
+            elif msg.command == command:
+                return msg.result
+        raise AssertionError(f'no ACK for {command}')
+
+    def target(self, v, yaw_rate=0.0, frame=mavlink.MAV_FRAME_LOCAL_NED, mask=VEL_YAW_RATE):
+        self.conn.mav.set_position_target_local_ned_send(0, 1, 1, frame, mask, 0, 0, 0, *v, 0, 0, 0, 0, yaw_rate)
+
+    def collect(self, seconds):
+        end, out = time.monotonic() + seconds, []
+        while time.monotonic() < end:
+            msg = self.conn.recv_match(blocking=True, timeout=0.05)
+            if msg is not None and msg.get_type() != 'BAD_DATA':
+                out.append(msg)
+        return out
+
+    def close(self):
+        self.conn.close()
+
+
+def vehicle(**kw):
+    return MavlinkVehicle(VehicleConfig(connection='udpin:127.0.0.1:0', **{'ready_delay': 0.0, **kw}))
+
+
+def wait_for(predicate, timeout, what):
+    end = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < end, f'timed out waiting for {what}'
+        time.sleep(0.02)
+
+
+def airborne(sim, gcs, height=1.0):
+    assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4) == mavlink.MAV_RESULT_ACCEPTED
+    assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+    assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, height) == mavlink.MAV_RESULT_ACCEPTED
+    wait_for(lambda: -sim.truth().position[2] > height - 0.03 and abs(sim.truth().velocity[2]) < 0.02,
+             6.0, 'takeoff')
+
+
+def test_streams_start_only_when_requested_and_ack_codes():
+    with vehicle(ready_delay=0.3) as sim:
+        gcs = Gcs(sim.address[1])
+        kinds = {m.get_type() for m in gcs.collect(1.2)}
+        assert kinds <= {'HEARTBEAT', 'STATUSTEXT'} and 'HEARTBEAT' in kinds
+        ok = mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                           mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 100000) == ok
+        assert gcs.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                           mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, 100000) == mavlink.MAV_RESULT_FAILED
+        assert gcs.command(mavlink.MAV_CMD_DO_REPOSITION) == mavlink.MAV_RESULT_UNSUPPORTED
+        stamps = [m.time_boot_ms for m in gcs.collect(1.0) if m.get_type() == 'LOCAL_POSITION_NED']
+        assert len(stamps) > 3 and 80 <= np.median(np.diff(stamps)) <= 120  # 10 Hz on its own clock
+        assert gcs.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                           mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, -1) == ok
+        gcs.collect(0.1)
+        assert not [m for m in gcs.collect(0.5) if m.get_type() == 'LOCAL_POSITION_NED']
+        gcs.close()
+
+
+def test_arming_rules():
+    with vehicle(ready_delay=0.8, disarm_delay=0.5) as sim:
+        gcs = Gcs(sim.address[1])
+        arm, failed = mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_RESULT_FAILED
+        assert gcs.command(arm, 1) == failed and gcs.texts == ['PreArm: Need Position Estimate']
+        gcs.conn.recv_match(type='STATUSTEXT', condition='STATUSTEXT.text=="EKF3 IMU0 is using GPS"',
+                            blocking=True, timeout=2.0)
+        assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 9) == mavlink.MAV_RESULT_ACCEPTED  # LAND
+        assert gcs.command(arm, 1) == failed and gcs.texts == ['Arm: Mode not armable']
+        assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 0) == mavlink.MAV_RESULT_ACCEPTED  # STABILIZE
+        assert gcs.command(arm, 1) == mavlink.MAV_RESULT_ACCEPTED and sim.truth().armed
+        assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == failed  # not GUIDED
+        wait_for(lambda: not sim.truth().armed, 2.0, 'auto-disarm without takeoff')
+        gcs.close()
+
+
+def test_guided_targets_ground_takeoff_abort_and_guid_timeout():
+    with vehicle() as sim:
+        gcs = Gcs(sim.address[1])
+        assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4) == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+        gcs.target((1.0, 0.0, -1.0))            # on the ground: ignored
+        time.sleep(0.3)
+        assert np.allclose(sim.truth().position, 0.0)
+        assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 5.0) == mavlink.MAV_RESULT_ACCEPTED
+        wait_for(lambda: -sim.truth().position[2] > 0.5, 3.0, 'climbing')
+        gcs.target((0.0, 0.0, 0.0))             # aborts the climb
+        wait_for(lambda: np.linalg.norm(sim.truth().velocity) < 0.02, 3.0, 'stop')
+        assert -sim.truth().position[2] < 2.0
+        p0 = sim.truth().position
+        gcs.target((1.0, 0.0, 0.0))             # one target, then silence: flown for GUID_TIMEOUT
+        time.sleep(2.0)
+        assert sim.truth().velocity[0] > 0.95   # still going after 2 s
+        wait_for(lambda: np.linalg.norm(sim.truth().velocity) < 0.02, 4.0, 'stop after GUID_TIMEOUT')
+        assert math.isclose((sim.truth().position - p0)[0], 3.0, abs_tol=0.15)
+        gcs.close()
+
+
+def test_bad_targets_hold_and_yaw_follows_travel_when_ignored():
+    with vehicle() as sim:
+        gcs = Gcs(sim.address[1])
+        airborne(sim, gcs)
+        for bad in ((math.nan, 0.0, 0.0), (1500.0, 0.0, 0.0)):
+            gcs.target((1.0, 0.0, 0.0))
+            wait_for(lambda: sim.truth().velocity[0] > 0.5, 2.0, 'moving')
+            gcs.target(bad)                     # stop and hold, no error
+            wait_for(lambda: np.linalg.norm(sim.truth().velocity) < 0.02, 2.0, 'hold')
+        gcs.target((1.0, 0.0, 0.0))
+        wait_for(lambda: sim.truth().velocity[0] > 0.5, 2.0, 'moving')
+        gcs.target((1.0, 0.0, 0.0), frame=mavlink.MAV_FRAME_GLOBAL)  # unsupported frame
+        wait_for(lambda: np.linalg.norm(sim.truth().velocity) < 0.02, 2.0, 'hold')
+        # yaw and yaw rate ignored: the nose turns to the travel direction (east: +pi/2)
+        for _ in range(25):
+            gcs.target((0.0, 0.5, 0.0), mask=VEL_ONLY)
+            time.sleep(0.08)
+        assert math.isclose(sim.truth().yaw, math.pi / 2, abs_tol=0.1)
+        # heading-aligned body frame: forward is now east
+        gcs.target((0.0, 0.0, 0.0))
+        wait_for(lambda: np.linalg.norm(sim.truth().velocity) < 0.02, 2.0, 'hold')
+        gcs.target((0.8, 0.0, 0.0), frame=mavlink.MAV_FRAME_BODY_OFFSET_NED)
+        wait_for(lambda: sim.truth().velocity[1] > 0.7, 2.0, 'flying east')
+        assert abs(sim.truth().velocity[0]) < 0.1
+        gcs.close()
+
+
+def test_link_cut_and_console_script():
+    with vehicle() as sim:
+        gcs = Gcs(sim.address[1])
+        assert gcs.collect(1.1)
+        sim.cut_link()
+        gcs.collect(0.05)
+        assert gcs.collect(1.2) == []
+        sim.restore_link()
+        assert any(m.get_type() == 'HEARTBEAT' for m in gcs.collect(1.2))
+        gcs.close()
+    proc = subprocess.Popen([sys.executable, '-m', 'uav_vs.sim.mavlink_vehicle', '--connection',
+                             'tcpin:127.0.0.1:0', '--ready-delay', '0'], stdout=subprocess.PIPE, text=True)
+    try:
+        port = int(proc.stdout.readline().split('(')[1].split(')')[0].split(':')[1])
+        client = open_connection(f'tcp:127.0.0.1:{port}')
+        hb = client.recv_match(type='HEARTBEAT', blocking=True, timeout=3.0)
+        assert hb is not None and hb.autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+        client.close()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=5)

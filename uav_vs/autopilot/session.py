@@ -1,0 +1,652 @@
+"""A MAVLink session with one autopilot (ArduPilot Copter or PX4): what the relay node drives.
+
+The velocity commands of the chapter's controllers (sections 5 and 6) leave the ROS
+graph here, and the autopilot's own estimate comes back (the comparison of Fig. 6).
+
+Threading: one background thread owns the link. It parses every incoming message,
+sends the GCS heartbeat (1 Hz), re-streams the current setpoint, runs the command
+and link watchdogs and reconnects. The public methods are thread-safe.
+`send_velocity()` validates, limits, converts and writes its
+SET_POSITION_TARGET_LOCAL_NED at once from the caller's thread (lowest latency);
+blocking calls (`arm`, `takeoff`, ...) wait on a condition that the thread signals.
+The watchdogs run whatever the caller does: a stalled ROS executor still ends in a
+hover, never in its last command streamed on and on.
+
+Frames: commands and telemetry are ROS frames (world ENU, base_link FLU); every
+conversion goes through `frames`.
+"""
+import collections
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from enum import Enum
+
+import numpy as np
+
+from . import frames
+from .link import (FORCE_DISARM, VELOCITY_YAW_RATE_MASK, load_signing_key, mavlink, mavutil,
+                   open_connection)
+
+log = logging.getLogger(__name__)
+
+ARDUPILOT, PX4, GENERIC = 'ardupilot', 'px4', 'generic'
+_AUTOPILOTS = {mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: ARDUPILOT, mavlink.MAV_AUTOPILOT_PX4: PX4}
+_NOT_VEHICLES = (mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_GIMBAL, mavlink.MAV_TYPE_ADSB,
+                 mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_CAMERA)
+# Modes in which the autopilot flies our velocity setpoints.
+VELOCITY_MODE = {ARDUPILOT: 'GUIDED', PX4: 'OFFBOARD'}
+# Body-frame setpoints: ArduPilot reads BODY_OFFSET_NED, PX4 only BODY_NED (both heading-aligned).
+BODY_FRAME = {ARDUPILOT: mavlink.MAV_FRAME_BODY_OFFSET_NED, PX4: mavlink.MAV_FRAME_BODY_NED}
+_LANDING_MODES = ('LAND',)
+_UNSIGNED_OK = frozenset({mavlink.MAVLINK_MSG_ID_RADIO_STATUS})  # telemetry radios never sign
+
+
+class LinkState(str, Enum):
+    CONNECTING = 'connecting'  # no vehicle HEARTBEAT yet
+    CONNECTED = 'connected'
+    LOST = 'lost'              # no HEARTBEAT for link_timeout: commands stopped, reconnecting
+
+
+class CommandState(str, Enum):
+    IDLE = 'idle'      # nothing streamed (no command since connect, takeoff or mode change)
+    ACTIVE = 'active'  # fresh commands, re-streamed at stream_rate
+    HOVER = 'hover'    # input stale (command watchdog): zero velocity streamed
+    LOCKED = 'locked'  # link down, takeoff climb or landing: velocity commands refused
+
+
+class AutopilotError(RuntimeError):
+    """An operation the autopilot refused or that could not be completed."""
+
+
+class CommandError(AutopilotError):
+    """A COMMAND_LONG refused (result is a MAV_RESULT) or never acknowledged (result None)."""
+
+    def __init__(self, command: int, result: int | None, statustext: list[str]):
+        self.command, self.result, self.statustext = command, result, statustext
+        name = _enum_name('MAV_CMD', command)
+        what = f'refused: {_enum_name("MAV_RESULT", result)}' if result is not None else 'no COMMAND_ACK'
+        said = f"; autopilot says: {' | '.join(statustext)}" if statustext else ''
+        super().__init__(f'{name} {what}{said}')
+
+
+def _enum_name(enum: str, value: int) -> str:
+    entry = mavlink.enums[enum].get(value)
+    return entry.name if entry is not None else f'{enum}({value})'
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Command limits applied before anything is sent (SI units, ROS frames)."""
+    max_speed: float = 2.0       # horizontal speed [m/s]; faster commands are scaled down
+    max_climb: float = 1.0       # upward speed [m/s]
+    max_descent: float = 0.7     # downward speed [m/s]
+    max_yaw_rate: float = 1.0    # [rad/s]
+    fence_min: tuple[float, float, float] | None = None  # world ENU box [m]: outward velocity
+    fence_max: tuple[float, float, float] | None = None  # components are zeroed at its faces
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    connection: str                         # pymavlink connection string
+    baud: int = 115200                      # serial only
+    source_system: int = 255                # our MAVLink id (255 = GCS, as MAVProxy)
+    source_component: int = mavlink.MAV_COMP_ID_MISSIONPLANNER
+    target_system: int = 0                  # 0: the first vehicle heard
+    rates: dict = field(default_factory=lambda: {  # telemetry requested [Hz]
+        'LOCAL_POSITION_NED': 20.0, 'ATTITUDE': 20.0, 'GLOBAL_POSITION_INT': 5.0, 'SYS_STATUS': 1.0})
+    stream_rate: float = 10.0               # setpoint re-send rate [Hz] (PX4 needs > 2)
+    command_timeout: float = 0.5            # input older than this -> hover [s]
+    link_timeout: float = 3.0               # no HEARTBEAT for this -> link lost [s]
+    ack_timeout: float = 1.0                # per COMMAND_LONG try [s]
+    command_retries: int = 2
+    allow_arming: bool = False
+    limits: Limits = Limits()
+    signing_key_file: str | None = None     # MAVLink 2 signing (see link.load_signing_key)
+    signing_required: bool = True           # reject unsigned incoming messages
+
+
+@dataclass(frozen=True)
+class Telemetry:
+    """The autopilot's estimate in ROS frames (None until the message has arrived)."""
+    stamp: float | None = None                    # time.monotonic() of the newest message
+    position: np.ndarray | None = None            # world ENU [m] (LOCAL_POSITION_NED)
+    velocity: np.ndarray | None = None            # world ENU [m/s]
+    orientation: np.ndarray | None = None         # (x, y, z, w) of base_link FLU in world ENU
+    angular_velocity: np.ndarray | None = None    # base_link FLU [rad/s]
+    height: float | None = None                   # above home [m] (GLOBAL_POSITION_INT)
+    latitude: float | None = None                 # [deg]
+    longitude: float | None = None                # [deg]
+    altitude: float | None = None                 # AMSL [m]
+
+
+@dataclass(frozen=True)
+class Status:
+    link: LinkState
+    autopilot: str | None            # 'ardupilot', 'px4', 'generic'
+    vehicle_type: str | None         # MAV_TYPE without prefix, e.g. 'QUADROTOR'
+    system_id: int | None
+    mode: str | None
+    armed: bool
+    command: CommandState
+    prearm_ok: bool | None           # SYS_STATUS pre-arm check bit healthy
+    battery_voltage: float | None    # [V]
+    heartbeat_age: float | None      # [s]
+    reconnects: int
+    signing: bool                    # outgoing messages signed
+    vehicle_signs: bool              # last vehicle HEARTBEAT was signed
+    rejected: int                    # incoming messages dropped for a missing or bad signature
+    statustext: tuple[str, ...]      # the autopilot's latest STATUSTEXT, newest last
+
+
+def limit_velocity(v: np.ndarray, yaw_rate: float, limits: Limits) -> tuple[np.ndarray, float]:
+    """Scale horizontal speed to max_speed (direction kept), clamp climb/descent and yaw rate."""
+    out = np.array(v, dtype=float)
+    speed = math.hypot(out[0], out[1])
+    if speed > limits.max_speed:
+        out[:2] *= limits.max_speed / speed
+    out[2] = min(max(out[2], -limits.max_descent), limits.max_climb)
+    return out, min(max(yaw_rate, -limits.max_yaw_rate), limits.max_yaw_rate)
+
+
+def fence_velocity(v_world: np.ndarray, position: np.ndarray | None, lo, hi) -> np.ndarray:
+    """Zero the world-velocity components that would leave the box [lo, hi] from `position`.
+
+    Without a position estimate nothing can be checked, so the result is zero (hover).
+    """
+    if position is None:
+        return np.zeros(3)
+    out = np.array(v_world, dtype=float)
+    out[(position <= np.asarray(lo)) & (out < 0)] = 0.0
+    out[(position >= np.asarray(hi)) & (out > 0)] = 0.0
+    return out
+
+
+class Session:
+    """MAVLink session: call start(), then the commands below; close() when done."""
+
+    def __init__(self, config: SessionConfig):
+        if config.stream_rate <= 2.0:
+            raise ValueError(f'stream_rate must be above 2 Hz (PX4 needs it), got {config.stream_rate}')
+        self.config = config
+        self._key = load_signing_key(config.signing_key_file) if config.signing_key_file else None
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name='mavlink-session', daemon=True)
+        self._t0 = time.monotonic()
+        self._conn = None
+        self._opened_at = 0.0
+        self._next_open = 0.0
+        self._peer_closed = False
+        self._link = LinkState.CONNECTING
+        self._reconnects = 0
+        self._target: tuple[int, int] | None = None
+        self._autopilot = self._vehicle_type = self._mode = None
+        self._mav_type = None
+        self._armed = False
+        self._prearm_ok = self._battery = None
+        self._last_hb = None
+        self._vehicle_signs = False
+        self._rejected = 0
+        self._texts = collections.deque(maxlen=20)   # (monotonic time, text)
+        self._acks: dict[int, int] = {}
+        self._waiting: set[int] = set()
+        self._telemetry = Telemetry()
+        self._seen: dict[str, float] = {}
+        self._next_stream_check = 0.0
+        self._next_heartbeat = 0.0
+        self._command_state = CommandState.IDLE
+        self._setpoint = (np.zeros(3), 0.0, False)   # ENU/FLU velocity, yaw rate, body?
+        self._last_command = 0.0
+        self._next_setpoint = 0.0
+        self._handlers = {
+            'HEARTBEAT': self._on_heartbeat, 'COMMAND_ACK': self._on_ack,
+            'STATUSTEXT': self._on_statustext, 'LOCAL_POSITION_NED': self._on_local_position,
+            'ATTITUDE': self._on_attitude, 'GLOBAL_POSITION_INT': self._on_global_position,
+            'SYS_STATUS': self._on_sys_status}
+
+    # ---------------------------------------------------------------- lifecycle
+    def start(self) -> 'Session':
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        with self._cond:
+            self._close_connection()
+
+    def __enter__(self) -> 'Session':
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ---------------------------------------------------------------- state
+    def status(self) -> Status:
+        with self._cond:
+            now = time.monotonic()
+            return Status(
+                link=self._link, autopilot=self._autopilot, vehicle_type=self._vehicle_type,
+                system_id=self._target[0] if self._target else None, mode=self._mode,
+                armed=self._armed, command=self._command_state, prearm_ok=self._prearm_ok,
+                battery_voltage=self._battery,
+                heartbeat_age=None if self._last_hb is None else now - self._last_hb,
+                reconnects=self._reconnects, signing=self._key is not None,
+                vehicle_signs=self._vehicle_signs, rejected=self._rejected,
+                statustext=tuple(text for _, text in self._texts))
+
+    def telemetry(self) -> Telemetry:
+        with self._cond:
+            return self._telemetry
+
+    def wait_connected(self, timeout: float = 10.0) -> Status:
+        """Block until a vehicle HEARTBEAT has been heard; raise AutopilotError on timeout."""
+        with self._cond:
+            self._wait(lambda: self._link is LinkState.CONNECTED, timeout, 'a vehicle HEARTBEAT',
+                       need_link=False)
+        return self.status()
+
+    # ---------------------------------------------------------------- velocity
+    def send_velocity(self, linear, yaw_rate: float = 0.0, body: bool = False) -> bool:
+        """Command a velocity: `linear` in world ENU (body=False) or base_link FLU [m/s], yaw
+        rate about z-up [rad/s].
+
+        Limited, then sent at once and re-streamed until the next call; after
+        command_timeout without a call, zero is streamed (hover). Returns False, sending
+        nothing, while the link is down or a takeoff/landing holds commands. Raises
+        ValueError for a command that is not three finite numbers and a finite yaw rate.
+        """
+        v = np.asarray(linear, dtype=float)
+        if v.shape != (3,):
+            raise ValueError(f'velocity command needs 3 components, got shape {v.shape}')
+        if not (np.isfinite(v).all() and math.isfinite(yaw_rate)):
+            raise ValueError(f'velocity command is not finite: {v.tolist()}, yaw rate {yaw_rate}')
+        v, yaw_rate = limit_velocity(v, float(yaw_rate), self.config.limits)
+        with self._cond:
+            if self._link is not LinkState.CONNECTED or self._command_state is CommandState.LOCKED:
+                return False
+            now = time.monotonic()
+            self._setpoint = (v, yaw_rate, bool(body))
+            self._last_command = now
+            self._command_state = CommandState.ACTIVE
+            self._send_setpoint(now)
+            return True
+
+    def send_vision_pose(self, position, orientation, stamp: float,
+                         covariance: np.ndarray | None = None, pos_std: float = 0.1,
+                         angle_std: float = 0.05, reset_counter: int = 0) -> bool:
+        """Forward a world ENU pose (position [m], FLU->ENU quaternion x, y, z, w) as
+        VISION_POSITION_ESTIMATE (NED, FRD Euler angles), as external navigation is fed
+        to the ArduPilot/PX4 EKFs.
+
+        `stamp` is the pose time (UNIX seconds); `covariance` a 6x6 ROS pose covariance
+        (ENU position, FLU rotation), or None for diag(pos_std^2, angle_std^2).
+        """
+        p = frames.enu_to_ned(position)
+        roll, pitch, yaw = frames.attitude_enu_to_ned(orientation)
+        if covariance is None:
+            covariance = np.diag([pos_std ** 2] * 3 + [angle_std ** 2] * 3)
+        cov = frames.pose_covariance_enu_to_ned(covariance)[np.triu_indices(6)]
+        values = np.concatenate([p, [roll, pitch, yaw], cov])
+        if not np.isfinite(values).all():
+            raise ValueError('vision pose or covariance is not finite')
+        with self._cond:
+            if self._link is not LinkState.CONNECTED:
+                return False
+            self._conn.mav.vision_position_estimate_send(
+                int(stamp * 1e6), *p, float(roll), float(pitch), float(yaw), cov.tolist(),
+                reset_counter)
+            return True
+
+    # ---------------------------------------------------------------- commands
+    def set_mode(self, name: str, timeout: float = 5.0) -> None:
+        """Change flight mode by MAV_CMD_DO_SET_MODE and wait until HEARTBEAT reports it.
+
+        Names are the autopilot's own (ArduPilot: GUIDED, LAND, LOITER, ...; PX4:
+        OFFBOARD, POSCTL, LAND, ...). PX4 enters OFFBOARD only while setpoints flow, so
+        zero velocity is streamed for a second before and during the switch.
+        """
+        name = name.upper()
+        with self._cond:
+            self._require_link()
+            if self._autopilot == PX4:
+                if name not in mavutil.px4_map:
+                    raise ValueError(f'unknown PX4 mode {name}; known: {sorted(mavutil.px4_map)}')
+                _, main, sub = mavutil.px4_map[name]
+                params = (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub)
+                if name == 'OFFBOARD':
+                    self._command_state = CommandState.HOVER
+                    self._wait(lambda: False, 1.2, 'the OFFBOARD setpoint stream', raise_on_timeout=False)
+            else:
+                modes = mavutil.mode_mapping_byname(self._mav_type) or {}
+                if name not in modes:
+                    raise ValueError(f'unknown mode {name} for {self._vehicle_type}; known: {sorted(modes)}')
+                params = (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, modes[name], 0)
+            self._command(mavlink.MAV_CMD_DO_SET_MODE, *params)
+            self._wait(lambda: self._mode == name, timeout, f'HEARTBEAT to report mode {name}')
+            if name in _LANDING_MODES:
+                self._command_state = CommandState.LOCKED
+            elif self._command_state is not CommandState.HOVER:
+                self._command_state = CommandState.IDLE
+
+    def set_guided(self, timeout: float = 5.0) -> None:
+        """Enter the mode that flies velocity setpoints: ArduPilot GUIDED, PX4 OFFBOARD."""
+        with self._cond:
+            self._require_link()
+            mode = VELOCITY_MODE.get(self._autopilot, 'GUIDED')
+        self.set_mode(mode, timeout)
+
+    def arm(self, timeout: float = 5.0) -> None:
+        """Arm (only with allow_arming) and wait for HEARTBEAT to say so."""
+        if not self.config.allow_arming:
+            raise AutopilotError('arming is disabled: set allow_arming to let the relay arm')
+        with self._cond:
+            self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+            self._wait(lambda: self._armed, timeout, 'HEARTBEAT to report armed')
+
+    def disarm(self, force: bool = False, timeout: float = 5.0) -> None:
+        """Disarm; `force` overrides the autopilot's in-flight refusal (motors stop!)."""
+        with self._cond:
+            self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, FORCE_DISARM if force else 0)
+            self._wait(lambda: not self._armed, timeout, 'HEARTBEAT to report disarmed')
+
+    def takeoff(self, height: float, timeout: float | None = None) -> None:
+        """MAV_CMD_NAV_TAKEOFF to `height` above home, then wait until it is reached.
+
+        Velocity commands are refused meanwhile: ArduPilot aborts the climb on the first
+        velocity target. ArduPilot needs GUIDED and armed; PX4 takes its AMSL altitude.
+        """
+        if not (math.isfinite(height) and height > 0):
+            raise ValueError(f'takeoff height must be a positive number of metres, got {height}')
+        timeout = 10.0 + 2.0 * height if timeout is None else timeout
+        with self._cond:
+            self._require_link()
+            self._command_state = CommandState.LOCKED
+            try:
+                if self._autopilot == PX4:
+                    tel = self._telemetry
+                    if tel.altitude is None or tel.height is None:
+                        raise AutopilotError('no GLOBAL_POSITION_INT yet: PX4 needs an AMSL takeoff altitude')
+                    nan = math.nan
+                    self._command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, nan, nan, nan,
+                                  tel.altitude - tel.height + height)
+                else:
+                    self._command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, height)
+                self._wait(lambda: (self._telemetry.height or 0.0) >= 0.95 * height, timeout,
+                           f'takeoff height {height:.2f} m')
+            finally:
+                self._command_state = CommandState.IDLE
+
+    def land(self, timeout: float = 5.0) -> None:
+        """Land where we are (ArduPilot LAND mode, PX4 MAV_CMD_NAV_LAND); commands stop."""
+        with self._cond:
+            self._require_link()
+            self._command_state = CommandState.LOCKED
+            if self._autopilot != PX4:
+                self.set_mode('LAND', timeout)
+                return
+            nan = math.nan
+            self._command(mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, nan, nan, nan, nan)
+            self._wait(lambda: self._mode == 'LAND', timeout, 'HEARTBEAT to report LAND')
+
+    def install_signing_key(self, timeout: float = 3.0) -> None:
+        """Send SETUP_SIGNING with our key and wait for a signed vehicle HEARTBEAT.
+
+        SETUP_SIGNING has no ACK and the autopilot refuses it while armed. Run with
+        signing_required=False to reach a vehicle that does not sign yet.
+        """
+        if self._key is None:
+            raise AutopilotError('no signing key: set signing_key_file')
+        with self._cond:
+            self._require_link()
+            if self._armed:
+                raise AutopilotError('SETUP_SIGNING is refused while armed: disarm first')
+            self._vehicle_signs = False
+            self._conn.mav.setup_signing_send(*self._target, list(self._key),
+                                              self._conn.mav.signing.timestamp)
+            self._wait(lambda: self._vehicle_signs, timeout, 'a signed HEARTBEAT')
+
+    # ---------------------------------------------------------------- internals (lock held)
+    def _require_link(self) -> None:
+        if self._link is not LinkState.CONNECTED:
+            raise AutopilotError(f'no link to the autopilot ({self._link.value})')
+
+    def _wait(self, predicate, timeout: float, what: str, need_link: bool = True,
+              raise_on_timeout: bool = True) -> bool:
+        """Wait (lock released) until predicate(); raise if the link drops or the session closes."""
+        lost = (lambda: self._link is not LinkState.CONNECTED) if need_link else (lambda: False)
+        self._cond.wait_for(lambda: predicate() or lost() or self._stop.is_set(), timeout)
+        if predicate():
+            return True
+        if lost():
+            raise AutopilotError(f'link lost while waiting for {what}')
+        if self._stop.is_set():
+            raise AutopilotError(f'session closed while waiting for {what}')
+        if raise_on_timeout:
+            raise AutopilotError(f'timed out after {timeout:.1f} s waiting for {what}')
+        return False
+
+    def _command(self, command: int, *params: float) -> None:
+        """COMMAND_LONG, retried with rising confirmation until a COMMAND_ACK; raise unless ACCEPTED."""
+        self._require_link()
+        p = (list(params) + [0.0] * 7)[:7]
+        sent = time.monotonic()
+        self._acks.pop(command, None)
+        self._waiting.add(command)
+        try:
+            for confirmation in range(self.config.command_retries + 1):
+                self._conn.mav.command_long_send(*self._target, command, confirmation, *p)
+                while self._wait(lambda: command in self._acks, self.config.ack_timeout,
+                                 _enum_name('MAV_CMD', command), raise_on_timeout=False):
+                    result = self._acks.pop(command)
+                    if result == mavlink.MAV_RESULT_IN_PROGRESS:
+                        continue
+                    if result == mavlink.MAV_RESULT_ACCEPTED:
+                        return
+                    # the reason usually comes just before the ACK, sometimes just after
+                    self._cond.wait_for(lambda: self._texts_since(sent - 1.0), 0.3)
+                    raise CommandError(command, result, self._texts_since(sent - 1.0))
+            raise CommandError(command, None, self._texts_since(sent - 1.0))
+        finally:
+            self._waiting.discard(command)
+
+    def _texts_since(self, t: float) -> list[str]:
+        return [text for stamp, text in self._texts if stamp >= t]
+
+    def _send_setpoint(self, now: float) -> None:
+        v, yaw_rate, body = self._setpoint
+        if self._command_state is CommandState.HOVER:
+            v, yaw_rate = np.zeros(3), 0.0
+        limits = self.config.limits
+        if limits.fence_min is not None and limits.fence_max is not None:
+            tel = self._telemetry
+            if body:
+                yaw = frames.yaw_of(tel.orientation) if tel.orientation is not None else 0.0
+                v, body = frames.body_to_world(v, yaw), False
+            v = fence_velocity(v, tel.position, limits.fence_min, limits.fence_max)
+        if body:
+            frame, (vx, vy, vz) = BODY_FRAME.get(self._autopilot, mavlink.MAV_FRAME_BODY_NED), frames.flu_to_frd(v)
+        else:
+            frame, (vx, vy, vz) = mavlink.MAV_FRAME_LOCAL_NED, frames.enu_to_ned(v)
+        self._conn.mav.set_position_target_local_ned_send(
+            int((now - self._t0) * 1e3) & 0xFFFFFFFF, *self._target, frame, VELOCITY_YAW_RATE_MASK,
+            0.0, 0.0, 0.0, vx, vy, vz, 0.0, 0.0, 0.0, 0.0, float(frames.yaw_rate_enu_to_ned(yaw_rate)))
+        self._next_setpoint = now + 1.0 / self.config.stream_rate
+
+    # ---------------------------------------------------------------- background thread
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            conn = self._conn
+            if conn is None:
+                self._open(time.monotonic())
+                continue
+            conn.select(0.01)
+            with self._cond:
+                try:
+                    while (msg := conn.recv_msg()) is not None:
+                        self._handle(msg)
+                except OSError as e:
+                    log.warning('MAVLink link error: %s', e)
+                    self._peer_closed = True
+                self._tick(time.monotonic())
+
+    def _open(self, now: float) -> None:
+        if now < self._next_open:
+            self._stop.wait(min(self._next_open - now, 0.1))
+            return
+        self._next_open = now + 1.0
+        cfg = self.config
+        try:
+            conn = open_connection(cfg.connection, cfg.baud, cfg.source_system, cfg.source_component)
+        except (OSError, ValueError) as e:
+            log.warning('cannot open %s: %s (retrying)', cfg.connection, e)
+            return
+        if isinstance(conn, mavutil.mavtcp):
+            conn.handle_eof = conn.handle_disconnect = self._on_peer_closed
+        if self._key is not None:
+            if cfg.signing_required:
+                def allow(mav, msg_id): return msg_id in _UNSIGNED_OK
+            else:
+                def allow(mav, msg_id): return True
+            conn.setup_signing(self._key, sign_outgoing=True, allow_unsigned_callback=allow)
+        with self._cond:
+            self._conn, self._opened_at, self._peer_closed = conn, now, False
+        log.info('opened %s', cfg.connection)
+
+    def _on_peer_closed(self) -> None:
+        self._peer_closed = True
+
+    def _close_connection(self) -> None:
+        if self._conn is not None:
+            try:
+                self._conn.close()
+            except OSError:
+                pass
+            self._conn = None
+
+    def _tick(self, now: float) -> None:
+        last = max(self._last_hb or 0.0, self._opened_at)
+        if self._peer_closed or now - last > self.config.link_timeout:
+            self._lose_link(now)
+            return
+        if now >= self._next_heartbeat:
+            self._conn.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
+                                          0, 0, mavlink.MAV_STATE_ACTIVE)
+            self._next_heartbeat = now + 1.0
+        if self._link is not LinkState.CONNECTED:
+            return
+        if now >= self._next_stream_check:
+            self._request_streams(now)
+        state = self._command_state
+        if state is CommandState.ACTIVE and now - self._last_command > self.config.command_timeout:
+            self._command_state = state = CommandState.HOVER
+            log.info('command input stale for %.2f s: hovering', now - self._last_command)
+        if state in (CommandState.ACTIVE, CommandState.HOVER) and now >= self._next_setpoint:
+            self._send_setpoint(now)
+
+    def _lose_link(self, now: float) -> None:
+        if self._link is LinkState.CONNECTED:
+            log.warning('link lost: no HEARTBEAT for %.1f s; reconnecting', now - (self._last_hb or now))
+        self._close_connection()
+        if self._link is LinkState.CONNECTED:
+            self._link = LinkState.LOST
+        self._command_state = CommandState.IDLE
+        self._setpoint = (np.zeros(3), 0.0, False)
+        self._acks.clear()
+        self._last_hb = None
+        self._cond.notify_all()
+
+    def _request_streams(self, now: float) -> None:
+        """SET_MESSAGE_INTERVAL for every wanted message not seen lately (per link, lost on reboot)."""
+        for name, rate in self.config.rates.items():
+            if now - self._seen.get(name, -math.inf) > max(1.0, 3.0 / rate):
+                self._conn.mav.command_long_send(
+                    *self._target, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                    getattr(mavlink, f'MAVLINK_MSG_ID_{name}'), 1e6 / rate, 0, 0, 0, 0, 0)
+        self._next_stream_check = now + 2.0
+
+    # ---------------------------------------------------------------- message handlers
+    def _handle(self, msg) -> None:
+        kind = msg.get_type()
+        if kind == 'BAD_DATA':
+            if 'signature' in str(getattr(msg, 'reason', '')):
+                self._rejected += 1
+            return
+        handler = self._handlers.get(kind)
+        if handler is None:
+            return
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if kind == 'HEARTBEAT':
+            handler(msg, src)
+        elif self._target is not None and src[0] == self._target[0] and (
+                kind == 'STATUSTEXT' or src[1] == self._target[1]):
+            self._seen[kind] = time.monotonic()
+            handler(msg)
+
+    def _on_heartbeat(self, msg, src) -> None:
+        if msg.type in _NOT_VEHICLES or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
+            return
+        if self._target is None:
+            if self.config.target_system not in (0, src[0]):
+                return
+            self._target = src
+        if src != self._target:
+            return
+        now = time.monotonic()
+        self._last_hb = now
+        self._vehicle_signs = msg.get_signed()
+        self._autopilot = _AUTOPILOTS.get(msg.autopilot, GENERIC)
+        self._mav_type = msg.type
+        self._vehicle_type = _enum_name('MAV_TYPE', msg.type).removeprefix('MAV_TYPE_')
+        self._mode = mavutil.mode_string_v10(msg)
+        self._armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        if self._link is not LinkState.CONNECTED:
+            if self._link is LinkState.LOST:
+                self._reconnects += 1
+            self._link = LinkState.CONNECTED
+            self._seen.clear()
+            self._next_stream_check = now
+            log.info('connected to %s %s (system %d)', self._autopilot, self._vehicle_type, src[0])
+        self._cond.notify_all()
+
+    def _on_ack(self, msg) -> None:
+        if msg.target_system not in (0, self.config.source_system):
+            return  # another GCS's command
+        if msg.command in self._waiting:
+            self._acks[msg.command] = msg.result
+            self._cond.notify_all()
+        elif msg.result != mavlink.MAV_RESULT_ACCEPTED:
+            log.warning('%s refused: %s', _enum_name('MAV_CMD', msg.command),
+                        _enum_name('MAV_RESULT', msg.result))
+
+    def _on_statustext(self, msg) -> None:
+        text = msg.text.rstrip('\x00') if isinstance(msg.text, str) else msg.text.decode(errors='replace')
+        self._texts.append((time.monotonic(), text))
+        level = logging.WARNING if msg.severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO
+        log.log(level, 'autopilot: %s', text)
+        self._cond.notify_all()
+
+    def _update(self, **fields) -> None:
+        self._telemetry = replace(self._telemetry, stamp=time.monotonic(), **fields)
+        self._cond.notify_all()
+
+    def _on_local_position(self, msg) -> None:
+        self._update(position=frames.ned_to_enu([msg.x, msg.y, msg.z]),
+                     velocity=frames.ned_to_enu([msg.vx, msg.vy, msg.vz]))
+
+    def _on_attitude(self, msg) -> None:
+        self._update(orientation=frames.attitude_ned_to_enu(msg.roll, msg.pitch, msg.yaw),
+                     angular_velocity=frames.frd_to_flu([msg.rollspeed, msg.pitchspeed, msg.yawspeed]))
+
+    def _on_global_position(self, msg) -> None:
+        self._update(height=msg.relative_alt * 1e-3, latitude=msg.lat * 1e-7,
+                     longitude=msg.lon * 1e-7, altitude=msg.alt * 1e-3)
+
+    def _on_sys_status(self, msg) -> None:
+        bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        self._prearm_ok = bool(msg.onboard_control_sensors_present & bit) and bool(
+            msg.onboard_control_sensors_health & bit)
+        self._battery = msg.voltage_battery * 1e-3 if msg.voltage_battery != 0xFFFF else None

@@ -1,0 +1,449 @@
+"""A simulated multirotor that speaks MAVLink the way ArduPilot Copter does.
+
+It is the test peer of the relay (uav_vs.autopilot.session) and the embedded default
+vehicle; the real targets are ArduPilot/PX4 SITL and real autopilots.
+
+Dynamics, in the autopilot's own local NED frame with home and the ground at z = 0
+(gravity-free: an armed, flying vehicle hovers where its velocity target is zero):
+
+    dv/dt   = (v_target - v) / tau          velocity tracking, first-order lag
+    dr/dt   = (r_target - r) / tau_yaw      yaw rate r (about z down), dpsi/dt = r
+    dp/dt   = v                             ground contact: z <= 0, no speed into the ground
+
+What it does like ArduPilot Copter 4.x (what the relay relies on):
+- HEARTBEAT (1 Hz) with custom_mode: STABILIZE 0, GUIDED 4, LAND 9; type QUADROTOR.
+- Nothing else streams until MAV_CMD_SET_MESSAGE_INTERVAL asks for it:
+  SYS_STATUS, ATTITUDE, LOCAL_POSITION_NED (only once the estimator is ready),
+  GLOBAL_POSITION_INT; STATUSTEXT on events.
+- COMMAND_LONG answered by COMMAND_ACK with real result codes: DO_SET_MODE,
+  COMPONENT_ARM_DISARM, NAV_TAKEOFF, NAV_LAND, SET_MESSAGE_INTERVAL; others UNSUPPORTED.
+- Arming refused (FAILED + a 'PreArm:'/'Arm:' STATUSTEXT) until the estimator is ready
+  (`ready_delay` after start) and outside GUIDED/STABILIZE; disarms itself if it has
+  not taken off `disarm_delay` after arming; refuses to disarm in flight unless forced.
+- NAV_TAKEOFF (GUIDED, armed, landed) climbs to param7 m above home, at most at
+  takeoff_speed, slowing down without overshoot.
+- SET_POSITION_TARGET_LOCAL_NED velocity (+ yaw rate) targets, frames 1, 7 (NED) and
+  8, 9 (heading-aligned body), obeyed only in GUIDED, armed and flying; dropped
+  silently otherwise (never acknowledged); they abort a takeoff climb. NaN, |v| > 1000
+  or another frame: stop and hold, silently. With yaw and yaw rate both ignored the
+  nose turns to the direction of travel. GUID_TIMEOUT: the last target is flown for
+  `guid_timeout` s, then the vehicle stops. Position targets are not simulated.
+- LAND descends at land_speed and disarms on touchdown. STABILIZE simulates no pilot
+  sticks: the vehicle holds still.
+- MAVLink 2 signing when a key is configured or installed by SETUP_SIGNING (no ACK,
+  ignored while armed): outgoing signed, unsigned incoming dropped.
+"""
+import argparse
+import collections
+import math
+import socket
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from uav_vs.autopilot.link import (FORCE_DISARM, POSITION_IGNORE, VELOCITY_IGNORE,
+                                   load_signing_key, mavlink, mavutil)
+
+STABILIZE, GUIDED, LAND = 0, 4, 9
+MODE_NAMES = {STABILIZE: 'STABILIZE', GUIDED: 'GUIDED', LAND: 'LAND'}
+STREAMABLE = {mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_SYS_STATUS,
+              mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+              mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT}
+EARTH_RADIUS = 6378137.0
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    connection: str = 'tcpin:127.0.0.1:5760'  # server side: tcpin:, udpin:, or udpout:HOST:PORT
+    rate: float = 50.0                  # simulation and send loop [Hz]
+    ready_delay: float = 3.0            # estimator 'ready' (armable, position known) after [s]
+    tau: float = 0.35                   # velocity lag [s]: 1 m/s stops in about 1.4 s
+    tau_yaw: float = 0.2                # yaw-rate lag [s]
+    takeoff_speed: float = 2.5          # [m/s] (WPNAV_SPEED_UP)
+    land_speed: float = 0.5             # [m/s] (LAND_SPEED)
+    guid_timeout: float = 3.0           # [s] (GUID_TIMEOUT)
+    disarm_delay: float = 10.0          # [s] armed on the ground without takeoff
+    system_id: int = 1
+    home: tuple[float, float, float] = (-35.363261, 149.165230, 584.0)  # lat, lon [deg], AMSL [m]
+    signing_key: bytes | None = None
+
+
+@dataclass(frozen=True)
+class Truth:
+    """Simulator ground truth, in the autopilot's NED frame (home on the ground at 0)."""
+    time: float                  # time.monotonic()
+    position: np.ndarray         # NED [m]
+    velocity: np.ndarray         # NED [m/s]
+    yaw: float                   # [rad], 0 north, clockwise
+    yaw_rate: float              # [rad/s] about z down
+    armed: bool
+    mode: str
+    flying: bool
+    signing: bool                # a key is installed: unsigned input is dropped
+
+
+@dataclass(frozen=True)
+class Target:
+    """A SET_POSITION_TARGET_LOCAL_NED as received (for tests: what went over the wire)."""
+    time: float
+    frame: int
+    type_mask: int
+    velocity: tuple[float, float, float]
+    yaw_rate: float
+
+
+class _TcpServer(mavutil.mavtcpin):
+    """tcpin that takes the newest client and listens again after a client hangs up."""
+
+    def recv(self, n=None):
+        try:
+            client, _ = self.listen.accept()
+            if self.port is not None:
+                self.port.close()
+            client.setblocking(False)
+            client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self.port, self.fd = client, client.fileno()
+        except BlockingIOError:
+            pass
+        if self.port is None:
+            return b''
+        try:
+            data = self.port.recv(n or self.mav.bytes_needed())
+        except BlockingIOError:
+            return b''
+        except OSError:
+            data = b''
+        if not data:  # the client hung up
+            self.port.close()
+            self.port, self.fd = None, self.listen.fileno()
+        return data
+
+
+def _server(device: str, system_id: int):
+    if device.startswith('tcpin:'):
+        return _TcpServer(device[6:], source_system=system_id, source_component=1)
+    return mavutil.mavlink_connection(device, source_system=system_id, source_component=1,
+                                      udp_timeout=5)
+
+
+class MavlinkVehicle:
+    """The simulated vehicle, run by a thread: start(), then truth(); stop() when done."""
+
+    def __init__(self, config: VehicleConfig = VehicleConfig()):
+        self.config = config
+        self._conn = _server(config.connection, config.system_id)
+        if config.signing_key is not None:
+            self._conn.setup_signing(config.signing_key, sign_outgoing=True)
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name='sim-vehicle', daemon=True)
+        self._t0 = time.monotonic()
+        self._link_up = True
+        self._p = np.zeros(3)
+        self._v = np.zeros(3)
+        self._yaw = self._yaw_rate = 0.0
+        self._v_target = np.zeros(3)
+        self._yaw_rate_target = 0.0
+        self._face_travel = False
+        self._target_time = -math.inf
+        self._mode = STABILIZE
+        self._armed = self._flying = self._ready = False
+        self._armed_at = 0.0
+        self._takeoff_alt: float | None = None
+        self._intervals = {mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0}
+        self._next_send: dict[int, float] = {}
+        self._targets = collections.deque(maxlen=2000)
+        self._senders = {
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._send_heartbeat,
+            mavlink.MAVLINK_MSG_ID_SYS_STATUS: self._send_sys_status,
+            mavlink.MAVLINK_MSG_ID_ATTITUDE: self._send_attitude,
+            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._send_local_position,
+            mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._send_global_position}
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """The (host, port) actually served (useful with port 0)."""
+        sock = self._conn.listen if isinstance(self._conn, _TcpServer) else self._conn.port
+        return sock.getsockname()[:2]
+
+    def start(self) -> 'MavlinkVehicle':
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        self._conn.close()
+
+    def __enter__(self) -> 'MavlinkVehicle':
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def truth(self) -> Truth:
+        with self._lock:
+            return Truth(time.monotonic(), self._p.copy(), self._v.copy(), self._yaw, self._yaw_rate,
+                         self._armed, MODE_NAMES[self._mode], self._flying,
+                         self._conn.mav.signing.secret_key is not None)
+
+    def targets(self, since: float = -math.inf) -> list[Target]:
+        """Velocity targets received at or after `since` (time.monotonic()), oldest first."""
+        with self._lock:
+            return [t for t in self._targets if t.time >= since]
+
+    def cut_link(self) -> None:
+        """Simulated radio loss: nothing is sent, everything received is dropped."""
+        with self._lock:
+            self._link_up = False
+
+    def restore_link(self) -> None:
+        with self._lock:
+            self._link_up = True
+
+    # ---------------------------------------------------------------- loop
+    def _run(self) -> None:
+        period = 1.0 / self.config.rate
+        last = time.monotonic()
+        while not self._stop.is_set():
+            now = time.monotonic()
+            with self._lock:
+                self._step(now, now - last)
+                while (msg := self._conn.recv_msg()) is not None:
+                    if self._link_up:
+                        self._handle(msg, now)
+                if self._link_up:
+                    self._send_due(now)
+            last = now
+            self._stop.wait(max(0.0, period - (time.monotonic() - now)))
+
+    def _step(self, now: float, dt: float) -> None:
+        cfg = self.config
+        if not self._ready and now - self._t0 >= cfg.ready_delay:
+            self._ready = True
+            self._text(mavlink.MAV_SEVERITY_INFO, 'EKF3 IMU0 is using GPS')
+        if self._armed and not self._flying and now - self._armed_at > cfg.disarm_delay:
+            self._disarm('Disarming: takeoff not started')
+        if not self._flying:
+            self._v[:] = 0.0
+            self._yaw_rate = 0.0
+            return
+        v_target, r_target = self._targets_now(now)
+        a = 1.0 - math.exp(-dt / cfg.tau)
+        self._v += (v_target - self._v) * a
+        self._yaw_rate += (r_target - self._yaw_rate) * (1.0 - math.exp(-dt / cfg.tau_yaw))
+        self._yaw = (self._yaw + self._yaw_rate * dt + math.pi) % (2 * math.pi) - math.pi
+        self._p += self._v * dt
+        if self._p[2] >= 0.0 and v_target[2] >= 0.0:  # touchdown
+            self._p[2] = 0.0
+            self._v[:] = 0.0
+            self._flying = False
+            if self._mode == LAND:
+                self._disarm('Land complete: disarming')
+        elif self._p[2] > 0.0:
+            self._p[2], self._v[2] = 0.0, min(self._v[2], 0.0)
+
+    def _targets_now(self, now: float) -> tuple[np.ndarray, float]:
+        """Velocity (NED) and yaw-rate targets of the current mode."""
+        cfg = self.config
+        if self._mode == LAND:
+            return np.array([0.0, 0.0, cfg.land_speed]), 0.0
+        if self._mode != GUIDED:
+            return np.zeros(3), 0.0
+        if self._takeoff_alt is not None:
+            remaining = self._takeoff_alt + self._p[2]
+            if remaining <= 0.02:
+                self._takeoff_alt = None
+                self._text(mavlink.MAV_SEVERITY_INFO, 'Takeoff complete')
+            else:  # climb rate led by the lag: critically damped, no overshoot
+                climb = min(cfg.takeoff_speed, (remaining + cfg.tau * self._v[2]) / cfg.tau)
+                return np.array([0.0, 0.0, -climb]), 0.0
+        if now - self._target_time > cfg.guid_timeout:
+            return np.zeros(3), 0.0
+        if self._face_travel and math.hypot(*self._v_target[:2]) > 0.1:
+            error = math.atan2(self._v_target[1], self._v_target[0]) - self._yaw
+            error = (error + math.pi) % (2 * math.pi) - math.pi
+            return self._v_target, max(-1.5, min(1.5, 2.0 * error))
+        return self._v_target, self._yaw_rate_target
+
+    # ---------------------------------------------------------------- incoming
+    def _handle(self, msg, now: float) -> None:
+        kind = msg.get_type()
+        if kind == 'COMMAND_LONG' and msg.target_system in (0, self.config.system_id):
+            result, text = self._command(msg, now)
+            if text:
+                self._text(mavlink.MAV_SEVERITY_CRITICAL, text)
+            self._conn.mav.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(),
+                                            msg.get_srcComponent())
+        elif kind == 'SET_POSITION_TARGET_LOCAL_NED' and msg.target_system in (0, self.config.system_id):
+            self._velocity_target(msg, now)
+        elif kind == 'SETUP_SIGNING' and msg.target_system in (0, self.config.system_id):
+            if not self._armed:
+                key = bytes(msg.secret_key)
+                if any(key):
+                    self._conn.setup_signing(key, sign_outgoing=True, initial_timestamp=msg.initial_timestamp)
+                else:
+                    self._conn.disable_signing()
+
+    def _command(self, msg, now: float) -> tuple[int, str | None]:
+        """Execute a COMMAND_LONG: (MAV_RESULT, STATUSTEXT reason or None)."""
+        c, ok, failed = msg.command, mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_FAILED
+        if c == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            msg_id, interval = int(msg.param1), msg.param2
+            if msg_id not in STREAMABLE:
+                return failed, None
+            if interval < 0 or (interval == 0 and msg_id != mavlink.MAVLINK_MSG_ID_HEARTBEAT):
+                self._intervals.pop(msg_id, None)
+            else:
+                self._intervals[msg_id] = interval * 1e-6 if interval > 0 else 1.0
+                self._next_send[msg_id] = now
+            return ok, None
+        if c == mavlink.MAV_CMD_DO_SET_MODE:
+            mode = int(msg.param2)
+            if not int(msg.param1) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED or mode not in MODE_NAMES:
+                return failed, f'Mode change failed: unknown mode {mode}'
+            if mode == GUIDED and not self._ready:
+                return failed, 'Mode change failed: GUIDED requires position'
+            self._set_mode(mode)
+            return ok, None
+        if c == mavlink.MAV_CMD_NAV_LAND:
+            self._set_mode(LAND)
+            return ok, None
+        if c == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+            if msg.param1 == 0:
+                if self._flying and int(msg.param2) != FORCE_DISARM:
+                    return failed, 'Disarm: vehicle is flying'
+                self._disarm(None)
+                self._flying = False
+                return ok, None
+            if self._armed:
+                return ok, None
+            if not self._ready:
+                return failed, 'PreArm: Need Position Estimate'
+            if self._mode not in (GUIDED, STABILIZE):
+                return failed, 'Arm: Mode not armable'
+            self._armed, self._armed_at = True, now
+            return ok, None
+        if c == mavlink.MAV_CMD_NAV_TAKEOFF:
+            height = msg.param7
+            if self._mode != GUIDED or not self._armed or self._flying or not height > 0:
+                return failed, None
+            self._takeoff_alt, self._flying = height, True
+            self._target_time = -math.inf
+            return ok, None
+        return mavlink.MAV_RESULT_UNSUPPORTED, None
+
+    def _velocity_target(self, msg, now: float) -> None:
+        mask = msg.type_mask
+        v = (msg.vx, msg.vy, msg.vz)
+        self._targets.append(Target(now, msg.coordinate_frame, mask, v, msg.yaw_rate))
+        if self._mode != GUIDED or not self._armed or not self._flying:
+            return  # dropped silently: on the ground, or not GUIDED
+        if mask & POSITION_IGNORE != POSITION_IGNORE or mask & VELOCITY_IGNORE:
+            return  # position targets are not simulated
+        yaw_rate_used = not mask & mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+        values = v + ((msg.yaw_rate,) if yaw_rate_used else ())
+        self._takeoff_alt = None  # a velocity target aborts the takeoff climb
+        self._target_time = now
+        if (msg.coordinate_frame not in (1, 7, 8, 9) or not all(map(math.isfinite, values))
+                or max(map(abs, v)) > 1000.0):
+            self._v_target, self._yaw_rate_target, self._face_travel = np.zeros(3), 0.0, False
+            return  # stop and hold, no error
+        if msg.coordinate_frame in (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED):
+            c, s = math.cos(self._yaw), math.sin(self._yaw)
+            v = (c * v[0] - s * v[1], s * v[0] + c * v[1], v[2])
+        self._v_target = np.array(v)
+        self._yaw_rate_target = msg.yaw_rate if yaw_rate_used else 0.0
+        self._face_travel = bool(mask & mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE) and not yaw_rate_used
+
+    def _set_mode(self, mode: int) -> None:
+        self._mode = mode
+        self._takeoff_alt = None
+        self._target_time = -math.inf
+
+    def _disarm(self, reason: str | None) -> None:
+        self._armed = False
+        self._takeoff_alt = None
+        if reason:
+            self._text(mavlink.MAV_SEVERITY_INFO, reason)
+
+    # ---------------------------------------------------------------- outgoing
+    def _text(self, severity: int, text: str) -> None:
+        if self._link_up:
+            self._conn.mav.statustext_send(severity, text.encode()[:50])
+
+    def _send_due(self, now: float) -> None:
+        for msg_id, interval in self._intervals.items():
+            if now >= self._next_send.get(msg_id, 0.0):
+                self._senders[msg_id](now)
+                self._next_send[msg_id] = max(self._next_send.get(msg_id, now) + interval, now)
+
+    def _boot_ms(self, now: float) -> int:
+        return int((now - self._t0) * 1e3)
+
+    def _send_heartbeat(self, now: float) -> None:
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
+        if self._mode == GUIDED:
+            base |= mavlink.MAV_MODE_FLAG_GUIDED_ENABLED
+        if self._armed:
+            base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        state = mavlink.MAV_STATE_ACTIVE if self._armed else mavlink.MAV_STATE_STANDBY
+        self._conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                      base, self._mode, state)
+
+    def _send_sys_status(self, now: float) -> None:
+        prearm = mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        health = prearm if self._ready else 0
+        self._conn.mav.sys_status_send(prearm, prearm, health, 200, 12600, -1, 100, 0, 0, 0, 0, 0, 0)
+
+    def _send_attitude(self, now: float) -> None:
+        self._conn.mav.attitude_send(self._boot_ms(now), 0.0, 0.0, self._yaw, 0.0, 0.0, self._yaw_rate)
+
+    def _send_local_position(self, now: float) -> None:
+        if self._ready:  # no EKF origin before
+            self._conn.mav.local_position_ned_send(self._boot_ms(now), *self._p, *self._v)
+
+    def _send_global_position(self, now: float) -> None:
+        lat, lon, alt = self.config.home
+        n, e, d = self._p
+        lat += math.degrees(n / EARTH_RADIUS)
+        lon += math.degrees(e / (EARTH_RADIUS * math.cos(math.radians(lat))))
+        vn, ve, vd = (int(round(x * 100)) for x in self._v)
+        self._conn.mav.global_position_int_send(
+            self._boot_ms(now), int(lat * 1e7), int(lon * 1e7), int((alt - d) * 1e3), int(-d * 1e3),
+            vn, ve, vd, int(math.degrees(self._yaw) % 360 * 100))
+
+
+def main(argv: list[str] | None = None) -> None:
+    """`sim_vehicle`: serve the simulated copter until Ctrl-C."""
+    parser = argparse.ArgumentParser(description='Simulated ArduCopter-like vehicle behind a MAVLink endpoint.')
+    parser.add_argument('--connection', default=VehicleConfig.connection,
+                        help='server side: tcpin:HOST:PORT, udpin:HOST:PORT or udpout:HOST:PORT '
+                             '(default %(default)s, like the arducopter binary)')
+    parser.add_argument('--rate', type=float, default=VehicleConfig.rate, help='simulation rate [Hz]')
+    parser.add_argument('--ready-delay', type=float, default=VehicleConfig.ready_delay,
+                        help='seconds before the vehicle is ready to arm')
+    parser.add_argument('--guid-timeout', type=float, default=VehicleConfig.guid_timeout,
+                        help='seconds a velocity target is flown without a new one')
+    parser.add_argument('--system-id', type=int, default=VehicleConfig.system_id)
+    parser.add_argument('--signing-key-file', help='enforce MAVLink 2 signing with this key')
+    args = parser.parse_args(argv)
+    key = load_signing_key(args.signing_key_file) if args.signing_key_file else None
+    config = VehicleConfig(connection=args.connection, rate=args.rate, ready_delay=args.ready_delay,
+                           guid_timeout=args.guid_timeout, system_id=args.system_id, signing_key=key)
+    with MavlinkVehicle(config) as vehicle:
+        host, port = vehicle.address
+        print(f'sim_vehicle: ArduCopter-like system {args.system_id} on {args.connection} '
+              f'({host}:{port}){", signing enforced" if key else ""}', flush=True)
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            pass
+
+
+if __name__ == '__main__':
+    main()
