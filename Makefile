@@ -10,8 +10,10 @@ export FASTRTPS_DEFAULT_PROFILES_FILE := $(abspath config/fastdds_shm.xml)
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export PATH := $(BIN):$(PATH)
 
+# An editable install: code and config are used from the checkout, so only these
+# files change what is installed.
 SOURCES := setup.py setup.cfg package.xml requirements.txt requirements-dev.txt \
-	$(shell find uav_vs config resource -type f -not -name '*.pyc' 2>/dev/null)
+	tools/install_ros_prefix.py $(wildcard config/*)
 
 .PHONY: install test bench demo clean
 
@@ -20,8 +22,8 @@ install: $(STAMP)
 $(STAMP): $(SOURCES)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q -r requirements-dev.txt
-	$(BIN)/python -m pip install -q --no-deps --no-build-isolation --force-reinstall .
-	$(BIN)/python tools/link_ros_executables.py
+	$(BIN)/python -m pip install -q --no-deps --no-build-isolation -e .
+	$(BIN)/python tools/install_ros_prefix.py
 	touch $(STAMP)
 
 test: $(STAMP)

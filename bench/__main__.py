@@ -1,14 +1,27 @@
-"""Run every benchmark suite, or those named: `python -m bench [suite ...]`."""
+"""Run every benchmark suite, or those named: `python -m bench [suite ...]`.
+
+A suite is an area of the package; each of its modules times its own cases and
+appends them to bench-results.jsonl.
+"""
 import importlib
 import sys
 
-SUITES = []
+SUITES = {
+    'ground': ['ground', 'ground_detection', 'ground_latency'],
+    'onboard': ['onboard_homography', 'onboard_pose'],
+    'fuzzy': ['fuzzy'],
+    'mavlink': ['mavlink', 'mavlink_relay'],
+}
 
 
 def main(argv: list[str]) -> None:
-    for name in argv or SUITES:
-        print(f'== {name}', flush=True)
-        importlib.import_module(f'bench.{name}').main()
+    unknown = set(argv) - set(SUITES)
+    if unknown:
+        sys.exit(f'unknown suite(s) {sorted(unknown)}; known: {", ".join(SUITES)}')
+    for suite in argv or SUITES:
+        print(f'== {suite}', flush=True)
+        for module in SUITES[suite]:
+            importlib.import_module(f'bench.{module}').main()
 
 
 if __name__ == '__main__':

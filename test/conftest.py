@@ -42,3 +42,58 @@ def shared_data() -> Path:
             pytest.fail(HOW_TO_GET)
         pytest.skip(HOW_TO_GET)
     return path
+
+
+@pytest.fixture
+def ros_node():
+    """A test-side rclpy node spinning in a background thread, in its own context."""
+    import threading
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node('test_probe', context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    yield node
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.shutdown(context=ctx)
+    thread.join(timeout=5)
+
+
+@pytest.fixture
+def processes(tmp_path):
+    """Start node processes (uav_vs.graph.start); all are stopped at teardown.
+
+    Usage: `proc = processes('camshift_node', ['-r', '__ns:=/cam1'], label='cam1')`.
+    Logs go to tmp_path/logs/<label>.log; `processes.log(label)` reads one.
+    """
+    from uav_vs import graph
+
+    started = []
+    log_dir = tmp_path / 'logs'
+
+    def start(name, ros_args, label=None, env=None):
+        proc = graph.start(name, ros_args, log_dir, label, env)
+        started.append(proc)
+        return proc
+
+    start.log = lambda label: (log_dir / f'{label}.log').read_text(errors='replace')
+    start.log_dir = log_dir
+    yield start
+    graph.stop(started)
+
+
+def wait_for(predicate, timeout: float, period: float = 0.02) -> bool:
+    """Poll predicate until true or timeout; returns its last value."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while not (ok := predicate()) and time.monotonic() < deadline:
+        time.sleep(period)
+    return ok

@@ -26,7 +26,7 @@ def read_messages(path: Path | str, topics: Iterable[str] | None = None) -> Iter
         reader.open()
     except Exception as err:
         raise BagError(f'{path}: cannot open bag: {err}') from err
-    with reader:
+    try:
         wanted = set(topics) if topics is not None else None
         conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
         promised = sum(c.msgcount for c in conns)
@@ -39,3 +39,5 @@ def read_messages(path: Path | str, topics: Iterable[str] | None = None) -> Iter
             raise BagError(f'{path}: corrupt bag after {got} messages: {err}') from err
         if got != promised:
             raise BagError(f'{path}: yielded {got} messages, metadata promises {promised}')
+    finally:
+        reader.close()

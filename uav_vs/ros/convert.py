@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point32, Polygon, PolygonStamped, PoseStamped, TwistStamped
+from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
@@ -129,3 +130,57 @@ def camera_info(fields: dict, header: Header) -> CameraInfo:
 def _check_size(width: int, height: int, expected: tuple[int, int] | None) -> None:
     if expected is not None and (width, height) != tuple(expected):
         raise MessageError(f'image is {width}x{height}, expected {expected[0]}x{expected[1]}')
+
+
+def odometry_to_msg(position: np.ndarray, quaternion_xyzw: np.ndarray, velocity: np.ndarray,
+                    angular_velocity: np.ndarray, header: Header, child_frame_id: str) -> Odometry:
+    """nav_msgs/Odometry of a body: pose in header.frame_id, twist in child_frame_id (REP-105).
+
+    `velocity` is given in the parent frame (as autopilots report it) and rotated into
+    the child frame here: v_child = R(q)^T v_parent. `angular_velocity` is already in
+    the child frame. Covariances are left zero (unknown).
+    """
+    msg = Odometry(header=header, child_frame_id=child_frame_id)
+    p = msg.pose.pose.position
+    p.x, p.y, p.z = map(float, position)
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = map(float, quaternion_xyzw)
+    u, w = -np.asarray(quaternion_xyzw[:3], dtype=float), float(quaternion_xyzw[3])  # conjugate
+    v = np.asarray(velocity, dtype=float)
+    t = 2.0 * np.cross(u, v)
+    v_child = v + w * t + np.cross(u, t)
+    tw = msg.twist.twist
+    tw.linear.x, tw.linear.y, tw.linear.z = map(float, v_child)
+    tw.angular.x, tw.angular.y, tw.angular.z = map(float, angular_velocity)
+    return msg
+
+
+def msg_to_odometry(msg: Odometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Odometry to (position, quaternion xyzw, linear and angular velocity in the child frame)."""
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    v, w = msg.twist.twist.linear, msg.twist.twist.angular
+    return (np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w]),
+            np.array([v.x, v.y, v.z]), np.array([w.x, w.y, w.z]))
+
+
+def image_to_gray(msg: Image, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+    """sensor_msgs/Image to an 8-bit grey array (mono8 without a copy); as image_to_bgr."""
+    if msg.encoding != 'mono8':
+        return cv2.cvtColor(image_to_bgr(msg, expected_size), cv2.COLOR_BGR2GRAY)
+    _check_size(msg.width, msg.height, expected_size)
+    if msg.step < msg.width or len(msg.data) < msg.step * msg.height:
+        raise MessageError(f'image data too short: {len(msg.data)} bytes for '
+                           f'{msg.width}x{msg.height} mono8 step {msg.step}')
+    buf = np.frombuffer(msg.data, np.uint8, count=msg.step * msg.height)
+    return buf.reshape(msg.height, msg.step)[:, :msg.width]
+
+
+def compressed_to_gray(msg: CompressedImage,
+                       expected_size: tuple[int, int] | None = None) -> np.ndarray:
+    """sensor_msgs/CompressedImage (jpeg, png) decoded straight to 8-bit grey."""
+    img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise MessageError(f'cannot decode compressed image (format {msg.format!r}, '
+                           f'{len(msg.data)} bytes)')
+    _check_size(img.shape[1], img.shape[0], expected_size)
+    return img

@@ -27,6 +27,7 @@ def declare_landmarks(node: Node) -> dict:
             Param(key + 'value', T.INTEGER_ARRAY, [40, 255], 'value range, 0..255', 0, 255,
                   size=2),
         ]
+    specs.append(Param('landmarks.radius', T.DOUBLE, 0.1, 'landmark sphere radius, m', 0.001, 10.0))
     return {**names, **declare(node, specs)}
 
 

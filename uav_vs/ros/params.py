@@ -5,6 +5,7 @@ is read, checked and coerced here (an integer is accepted where a double is
 expected, as YAML writes `500` for `500.0`), then the parameter is declared with its
 ROS type, description and range so `ros2 param describe` shows them.
 """
+import array
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -57,8 +58,11 @@ def declare(node: Node, specs: Sequence[Param]) -> dict[str, Any]:
 
 
 def _declare_one(node: Node, spec: Param) -> Any:
-    dynamic = ParameterDescriptor(dynamic_typing=True)
-    raw = node.declare_parameter(spec.name, None, dynamic).value
+    if node.has_parameter(spec.name):    # declared from the overrides already
+        raw = node.get_parameter(spec.name).value
+        raw = list(raw) if isinstance(raw, array.array) else raw
+    else:
+        raw = node.declare_parameter(spec.name, None, ParameterDescriptor(dynamic_typing=True)).value
     node.undeclare_parameter(spec.name)
     if raw is None:
         if spec.default is REQUIRED:

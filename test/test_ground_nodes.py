@@ -1,0 +1,156 @@
+"""Ground nodes as separate processes, started from their console scripts with the YAML.
+
+Truth is independent of the code under test: the simulator's exact poses recorded in
+the sample bag, or landmark pixels projected analytically through the calibration.
+"""
+import math
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PolygonStamped, PoseStamped
+from sensor_msgs.msg import Image
+from std_msgs.msg import Header
+
+from conftest import REPO, wait_for
+from uav_vs.ground_replay import replay_ground_bag
+from uav_vs.graph import executable
+from uav_vs.ros.convert import (bgr_to_image, msg_to_pose, ns_to_stamp, points_to_polygon,
+                                polygon_to_array, yaw_of)
+from uav_vs.vision.ground_config import load_ground_config, read_params_file
+
+CONFIG = REPO / 'config' / 'ground_trinocular.yaml'
+BAG = REPO / 'bags' / 'ground_trinocular'
+CAMERAS = ['cam1', 'cam2', 'cam3']
+
+
+def test_sample_bag_through_the_graph_meets_accuracy(tmp_path):
+    """Every synchronised frame set gives a pose: <= 2 cm position, <= 1 deg yaw RMSE."""
+    report = replay_ground_bag(BAG, CONFIG, tmp_path, CAMERAS)
+    print(report.summary())
+    assert report.frame_sets >= 50
+    assert report.poses >= 0.95 * report.frame_sets
+    assert report.position_rmse_m <= 0.02
+    assert report.yaw_rmse_deg <= 1.0
+    assert report.return_codes == [0] * 4
+
+
+def _broken_config(tmp_path: Path, path: list[str], value) -> Path:
+    doc = yaml.safe_load(CONFIG.read_text())
+    node = doc['/**']['ros__parameters']
+    for key in path[:-1]:
+        node = node[key]
+    if value is None:
+        del node[path[-1]]
+    else:
+        node[path[-1]] = value
+    out = tmp_path / 'broken.yaml'
+    out.write_text(yaml.safe_dump(doc))
+    return out
+
+
+@pytest.mark.parametrize('path, value, expected', [
+    (['cameras', 'cam2', 'R'], None, 'cameras.cam2.R: missing'),
+    (['cameras', 'cam1', 'K'], [500.0, 0.0, 320.0, 0.0, 500.0, 240.0], 'cameras.cam1.K: expected 9'),
+    (['cameras', 'cam3', 't'], ['a', 'b', 'c'], 'cameras.cam3.t: expected 3 numbers'),
+    (['cameras', 'cam1', 'R'], [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 2.0],
+     'cameras.cam1.R: expected a rotation matrix'),
+    (['landmarks', 'red', 'position'], None, 'landmarks.red.position: missing'),
+])
+def test_bad_calibration_stops_pose_node_with_one_line(tmp_path, path, value, expected):
+    cfg = _broken_config(tmp_path, path, value)
+    run = subprocess.run([executable('trinocular_pose_node'), '--ros-args', '--params-file',
+                          str(cfg)], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2
+    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
+    assert len(fatal) == 1 and expected in fatal[0], run.stderr
+
+
+def test_bad_landmark_colour_stops_camshift_node(tmp_path):
+    cfg = _broken_config(tmp_path, ['landmarks', 'blue', 'hue'], [100, 300])
+    run = subprocess.run([executable('camshift_node'), '--ros-args', '--params-file', str(cfg),
+                          '-p', 'camera:=cam1'], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2
+    assert 'landmarks.blue.hue' in run.stderr + run.stdout
+
+
+def _last_diagnostics(store: dict, name: str) -> dict:
+    status = store.get(name)
+    return {} if status is None else {kv.key: kv.value for kv in status.values}
+
+
+def _collect_diagnostics(ros_node, store: dict) -> None:
+    def on(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            store[status.name] = status
+    ros_node.create_subscription(DiagnosticArray, '/diagnostics', on, 50)
+
+
+def test_malformed_images_are_counted_skipped_and_the_node_goes_on(ros_node, processes):
+    proc = processes('camshift_node', ['--params-file', str(CONFIG), '-r', '__ns:=/cam1',
+                                       '-p', 'camera:=cam1', '-p', 'camshift.diagnostics_period:=0.2',
+                                       '-p', 'camshift.image_qos:=reliable'], label='cam1')
+    diags: dict = {}
+    _collect_diagnostics(ros_node, diags)
+    out: list[PolygonStamped] = []
+    ros_node.create_subscription(PolygonStamped, '/cam1/landmarks', out.append, 10)
+    pub = ros_node.create_publisher(Image, '/cam1/image_raw', 10)
+    assert wait_for(lambda: pub.get_subscription_count() > 0, 30)
+    header = Header(stamp=ns_to_stamp(1_000_000_000), frame_id='cam1_optical')
+    wrong_encoding = Image(header=header, height=480, width=640, encoding='32FC1', step=2560)
+    wrong_encoding.data = bytes(480 * 2560)
+    pub.publish(wrong_encoding)
+    pub.publish(bgr_to_image(np.zeros((240, 320, 3), np.uint8), header))    # wrong size
+    good = bgr_to_image(np.full((480, 640, 3), 90, np.uint8), header)
+    pub.publish(good)
+    assert wait_for(lambda: len(out) == 1, 10)
+    assert wait_for(lambda: _last_diagnostics(diags, '/cam1/camshift_node').get('malformed') == '2',
+                    10), diags
+    assert proc.poll() is None
+    assert polygon_to_array(out[0]).shape == (4, 3)
+    log = processes.log('cam1')
+    assert 'unsupported encoding' in log and 'expected 640x480' in log
+
+
+def _project_layout(cfg, position, yaw):
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    world = cfg.layout @ R.T + position
+    return [cam.project(world) for cam in cfg.cameras]
+
+
+def test_pose_survives_a_landmark_lost_in_one_camera_and_needs_two_landmarks(ros_node, processes):
+    cfg = load_ground_config(read_params_file(CONFIG))
+    processes('trinocular_pose_node', ['--params-file', str(CONFIG),
+                                       '-p', 'trinocular.diagnostics_period:=0.2'])
+    poses: list[PoseStamped] = []
+    ros_node.create_subscription(PoseStamped, '/ground/pose', poses.append, 10)
+    diags: dict = {}
+    _collect_diagnostics(ros_node, diags)
+    pubs = [ros_node.create_publisher(PolygonStamped, f'/{c}/landmarks', 10) for c in CAMERAS]
+    assert wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs), 30)
+
+    truth_pos, truth_yaw = np.array([0.4, -0.3, 1.2]), 2.5
+    pixels = _project_layout(cfg, truth_pos, truth_yaw)
+
+    def publish(stamp_ns: int, hide: dict[int, list[int]]) -> None:
+        for k, (pub, px) in enumerate(zip(pubs, pixels)):
+            pts = np.column_stack([px, np.ones(len(px))])
+            pts[hide.get(k, []), :2] = np.nan
+            pub.publish(points_to_polygon(pts, Header(stamp=ns_to_stamp(stamp_ns))))
+
+    publish(1_000_000_000, {0: [1]})                 # landmark 1 lost by cam1 only
+    assert wait_for(lambda: len(poses) == 1, 10)
+    p, q = msg_to_pose(poses[0])
+    assert np.linalg.norm(p - truth_pos) < 1e-6
+    assert abs(yaw_of(q) - truth_yaw) < 1e-6
+
+    everyone = list(range(len(cfg.landmark_names)))
+    publish(2_000_000_000, {k: everyone[1:] for k in range(3)})   # one landmark left
+    name = '/trinocular_pose_node'
+    assert wait_for(lambda: _last_diagnostics(diags, name).get('no_pose') == '1', 10), diags
+    assert len(poses) == 1
+    assert 'landmark' in diags[name].message

@@ -1,0 +1,112 @@
+"""camshift_node: one ground camera's colour landmarks (chapter section 3.1, eq 18-19).
+
+One process per camera, in the camera's namespace (`-r __ns:=/cam1 -p camera:=cam1`).
+Subscribes `image_raw` (sensor_msgs/Image) and `image_raw/compressed`.
+Publishes `landmarks` (geometry_msgs/PolygonStamped, the image's header: one point per
+landmark in `landmarks.names` order, x, y = raw pixel centroid, z = confidence 0..1,
+all NaN when the landmark is not found), `debug_image` (when `camshift.debug_image`)
+and /diagnostics (frames, malformed and stale images, landmarks found).
+"""
+import numpy as np
+from geometry_msgs.msg import PolygonStamped
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+from std_msgs.msg import Header
+
+from uav_vs.ros.convert import bgr_to_image, points_to_polygon
+from uav_vs.ros.ground_params import declare_cameras, declare_landmarks
+from uav_vs.ros.image_input import QOS_CHOICES, ImageInput
+from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, run
+from uav_vs.ros.params import Param, T, declare
+from uav_vs.vision.colour_model import models_from_params
+from uav_vs.vision.landmarks import DetectorParams, LandmarkDetector, centroids
+
+_D = DetectorParams()
+DETECTOR_PARAMS = [
+    Param('camshift.hue_bins', T.INTEGER, _D.hue_bins, 'H-S histogram bins over hue 0..179',
+          1, 180),
+    Param('camshift.saturation_bins', T.INTEGER, _D.saturation_bins,
+          'H-S histogram bins over saturation 0..255', 1, 256),
+    Param('camshift.histogram_smoothing', T.DOUBLE, _D.histogram_smoothing,
+          'image histogram smoothing over frames (eq 18); 0 = this frame only', 0.0, 0.99),
+    Param('camshift.downscale', T.INTEGER, _D.downscale,
+          'pixel step of the image histogram and of the whole-image search', 1, 16),
+    Param('camshift.search_margin', T.DOUBLE, _D.search_margin,
+          'search region = last window grown by this fraction of its larger side', 0.0, 10.0),
+    Param('camshift.min_search_margin_px', T.INTEGER, _D.min_search_margin_px,
+          '... and by at least this many pixels', 0, 10000),
+    Param('camshift.min_mass_px', T.DOUBLE, _D.min_mass_px,
+          'found: backprojected mass in the window, px', 0.0, 1e7),
+    Param('camshift.min_confidence', T.DOUBLE, _D.min_confidence,
+          'found: mean probability over the window', 0.0, 1.0),
+    Param('camshift.reacquire_interval', T.INTEGER, _D.reacquire_interval,
+          'frames between whole-image searches for a lost landmark', 1, 10000),
+    Param('camshift.max_iterations', T.INTEGER, _D.max_iterations, 'CamShift iterations', 1, 1000),
+    Param('camshift.epsilon_px', T.DOUBLE, _D.epsilon_px,
+          'CamShift stops when the window moves less than this, px', 0.0, 100.0),
+]
+NODE_PARAMS = [
+    Param('camera', T.STRING, description='this camera, one of cameras.names'),
+    Param('camshift.image_qos', T.STRING, 'sensor_data',
+          'image subscription QoS: sensor_data (best effort) or reliable (bag replay)',
+          choices=QOS_CHOICES),
+    Param('camshift.debug_image', T.BOOL, False, 'publish debug_image with the windows drawn'),
+    Param('camshift.diagnostics_period', T.DOUBLE, 1.0, 'diagnostics period, s', 0.05, 60.0),
+]
+
+
+class CamshiftNode(Node):
+    def __init__(self) -> None:
+        super().__init__('camshift_node')
+        p = declare(self, NODE_PARAMS)
+        camera = p['camera']
+        cams = declare_cameras(self, only=camera)
+        size = (cams[f'cameras.{camera}.width'], cams[f'cameras.{camera}.height'])
+        self.frame_id = cams[f'cameras.{camera}.frame_id']
+        landmarks = declare_landmarks(self)
+        area = declare(self, [Param(f'landmarks.{n}.area_px', T.DOUBLE, 400.0,
+                                    'expected landmark area in the image, px', 1.0, 1e7)
+                              for n in landmarks['landmarks.names']])
+        params = DetectorParams.from_params(declare(self, DETECTOR_PARAMS))
+        self.detector = LandmarkDetector(models_from_params({**landmarks, **area}, params.bins),
+                                         params)
+        self.pub = self.create_publisher(PolygonStamped, 'landmarks', 10)
+        self.debug_pub = (self.create_publisher(Image, 'debug_image', 1)
+                          if p['camshift.debug_image'] else None)
+        self.input = ImageInput(self, 'image_raw', p['camshift.image_qos'], self.on_image, size,
+                                colour=True)
+        self.frames = 0
+        self.found = np.zeros(len(self.detector.models), int)
+        self.diag = Diagnostics(self)
+        self.create_timer(p['camshift.diagnostics_period'], self.publish_diagnostics)
+
+    def on_image(self, bgr: np.ndarray, header: Header) -> None:
+        detections = self.detector.detect(bgr)
+        xy, conf = centroids(detections)
+        points = np.column_stack([xy, np.where(np.isnan(xy[:, 0]), np.nan, conf)])
+        self.pub.publish(points_to_polygon(points, Header(stamp=header.stamp,
+                                                          frame_id=header.frame_id
+                                                          or self.frame_id)))
+        self.frames += 1
+        self.found += [d.found for d in detections]
+        if self.debug_pub is not None and self.debug_pub.get_subscription_count():
+            self.debug_pub.publish(bgr_to_image(self.detector.draw(bgr, detections), header))
+
+    def publish_diagnostics(self) -> None:
+        last = [d is not None for d in self.detector.windows]
+        if not self.frames:
+            level, message = WARN, 'no image yet'
+        elif not any(last):
+            level, message = ERROR, 'no landmark found in the last frame'
+        else:
+            level, message = OK, f'{sum(last)}/{len(last)} landmarks found'
+        found = {f'found_{m.name}': int(n) for m, n in zip(self.detector.models, self.found)}
+        self.diag.publish(level, message, {'frames': self.frames, **self.input.counts, **found})
+
+
+def main(args: list[str] | None = None) -> None:
+    run(CamshiftNode, 'camshift_node', args)
+
+
+if __name__ == '__main__':
+    main()
