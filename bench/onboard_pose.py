@@ -1,0 +1,93 @@
+"""Onboard plane-pose pipeline (section 4): per-frame time on rendered flights.
+
+Each case renders the sample bag's flight (config/onboard.yaml camera, scaled to the
+case's resolution, JPEG q90 like the bag) and times `PlanePoseEstimator.update` frame
+by frame on one OpenCV thread, next to a straightforward loop on the same frames (as
+OpenCV's lk_homography sample: good features to track on every frame, pyramidal L-K
+forward and back, cv2.findHomography RANSAC). Accuracy against the simulator truth is
+reported with it.
+"""
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bench.common import report
+from uav_vs.sim.onboard_scene import OnboardScene, Trajectory, fly
+from uav_vs.vision.ground_config import read_params_file
+from uav_vs.vision.onboard_config import load_onboard_config
+from uav_vs.vision.plane_pose import PlanePoseEstimator
+
+SUITE = 'onboard'
+CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'onboard.yaml'
+REFERENCE = 'gftt+lk+findHomography loop'
+_GFTT = dict(maxCorners=1000, qualityLevel=0.01, minDistance=8, blockSize=19)
+_LK = dict(winSize=(19, 19), maxLevel=2,
+           criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 0.03))
+
+
+def reference_step(prev: np.ndarray, gray: np.ndarray) -> np.ndarray | None:
+    """The straightforward frame-to-frame loop the pipeline is compared with."""
+    p0 = cv2.goodFeaturesToTrack(prev, **_GFTT)
+    p1, _, _ = cv2.calcOpticalFlowPyrLK(prev, gray, p0, None, **_LK)
+    back, _, _ = cv2.calcOpticalFlowPyrLK(gray, prev, p1, None, **_LK)
+    good = np.abs(p0 - back).reshape(-1, 2).max(axis=1) < 1.0
+    return cv2.findHomography(p0[good], p1[good], cv2.RANSAC, 10.0)[0]
+
+
+def _ms(fn, *args) -> float:
+    t0 = time.perf_counter()
+    fn(*args)
+    return (time.perf_counter() - t0) * 1e3
+
+
+def pose_case(width: int, height: int) -> dict:
+    """Render the flight at width x height, time the pipeline and the reference."""
+    cfg = load_onboard_config(read_params_file(CONFIG))
+    scale = width / cfg.camera.width
+    K = cfg.camera.K * [[scale], [scale], [1]]
+    K[:2, 2] = [(width - 1) / 2, (height - 1) / 2]
+    camera = replace(cfg.camera, width=width, height=height, K=K)
+    scene = OnboardScene(camera, cfg.camera_to_body, metres_per_pixel=0.005 / scale, seed=0)
+    frames = []
+    for _, img, R, p in fly(scene, Trajectory(), 15.0):
+        ok, jpeg = cv2.imencode('.jpg', img, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        frames.append((cv2.imdecode(jpeg, cv2.IMREAD_GRAYSCALE), R, p))
+    est = PlanePoseEstimator(camera, cfg.params, cfg.camera_to_body)
+    est.initialise(frames[0][0], scene.homography(*frames[0][1:]))
+    ms, pos_err, att_err, lost = [], [], [], 0
+    for gray, R, p in frames[1:]:
+        t0 = time.perf_counter()
+        r = est.update(gray)
+        ms.append((time.perf_counter() - t0) * 1e3)
+        if not r.ok:
+            lost += 1
+            continue
+        pos_err.append(np.linalg.norm(r.position - p) / p[2])
+        att_err.append(np.degrees(np.linalg.norm(Rotation.from_matrix(R.T @ r.R).as_rotvec())))
+    ref_ms = [_ms(reference_step, a[0], b[0]) for a, b in zip(frames, frames[1:])]
+    return report(SUITE, f'onboard/pose_{width}x{height}', np.array(ms), REFERENCE,
+                  np.array(ref_ms), frames=len(ms), lost=lost, reanchors=est.reanchors,
+                  pos_rmse_pct_height=round(100 * float(np.sqrt(np.mean(np.square(pos_err)))), 3),
+                  att_rmse_deg=round(float(np.sqrt(np.mean(np.square(att_err)))), 3))
+
+
+def pose_cases() -> list[dict]:
+    """Both resolutions, on one OpenCV thread (the target is one core)."""
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return [pose_case(640, 480), pose_case(1280, 720)]
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def main() -> None:
+    pose_cases()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,253 @@
+"""Onboard nodes as separate processes, started from their console scripts with the YAML.
+
+Truth is independent of the code under test: the simulator's exact poses recorded in
+the sample bag, frames rendered by the simulator at known poses, and a target pasted
+into a scene through a known homography.
+"""
+import subprocess
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PolygonStamped, PoseStamped
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import CompressedImage, Image
+from std_msgs.msg import Bool, Header
+
+from conftest import REPO, wait_for
+from uav_vs.graph import executable
+from uav_vs.onboard_replay import replay_onboard_bag
+from uav_vs.ros.convert import (bgr_to_compressed, bgr_to_image, msg_to_pose, ns_to_stamp,
+                                polygon_to_array, stamp_to_ns)
+from uav_vs.sim.onboard_scene import OnboardScene
+from uav_vs.vision.ground_config import read_params_file
+from uav_vs.vision.onboard_config import load_onboard_config
+
+CONFIG = REPO / 'config' / 'onboard.yaml'
+BAG = REPO / 'bags' / 'onboard'
+RELIABLE = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+# Lossless delivery for the tests (a recorded stream, not a live camera).
+POSE_NODE_ARGS = ['--params-file', str(CONFIG), '-p', 'homography_pose.image_qos:=reliable',
+                  '-p', 'homography_pose.diagnostics_period:=0.1']
+
+
+@pytest.fixture(scope='module')
+def cfg():
+    return load_onboard_config(read_params_file(CONFIG))
+
+
+# ------------------------------------------------------------------ pose node
+
+def test_sample_bag_through_the_pose_node_meets_accuracy(tmp_path):
+    """Nearly every frame gives a pose: position RMSE <= 2 % of the camera height (each
+    error over that frame's true height), attitude RMSE <= 1 deg, over the whole bag,
+    against the simulator's truth. The recording is replayed at its rate, losslessly
+    (reliable image subscription), as a bag should be."""
+    report = replay_onboard_bag(BAG, CONFIG, tmp_path,
+                                extra_args=['-p', 'homography_pose.image_qos:=reliable'])
+    print(report.summary())
+    assert report.frames == 151
+    assert report.poses >= 0.97 * report.frames
+    assert report.relative_rmse <= 0.02
+    assert report.attitude_rmse_deg <= 1.0
+    assert report.return_codes == [0]
+
+
+def _params_file(tmp_path: Path, changes: dict) -> Path:
+    """config/onboard.yaml with dotted keys changed (None deletes the key)."""
+    doc = yaml.safe_load(CONFIG.read_text())
+    for key, value in changes.items():
+        node = doc['/**']['ros__parameters']
+        *parents, leaf = key.split('.')
+        for name in parents:
+            node = node[name]
+        if value is None:
+            del node[leaf]
+        else:
+            node[leaf] = value
+    out = tmp_path / 'broken.yaml'
+    out.write_text(yaml.safe_dump(doc))
+    return out
+
+
+@pytest.mark.parametrize('changes, expected', [
+    ({'camera.K': [500.0, 0.0, 319.5, 0.0, 500.0, 239.5]}, 'camera.K: expected 9 numbers'),
+    ({'camera.D': None}, 'camera.D: missing'),
+    ({'homography.method': 'ransack'}, 'homography.method: expected a string (one of ransac'),
+    ({'init.position': [0.0, 0.0, -1.0]}, 'init.position: the camera must be above'),
+    ({'init.mode': 'reference_points', 'init.image_points': [1.0, 2.0, 3.0, 4.0]},
+     'init.image_points'),
+    ({'klt.win_size': 16}, 'klt.win_size: expected an odd number'),
+])
+def test_bad_parameter_stops_pose_node_with_one_line(tmp_path, changes, expected):
+    run = subprocess.run([executable('homography_pose_node'), '--ros-args', '--params-file',
+                          str(_params_file(tmp_path, changes))],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2
+    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
+    assert len(fatal) == 1 and expected in fatal[0], run.stdout + run.stderr
+
+
+class Probe:
+    """Test-side view of the pose node: its poses by stamp and its last diagnostics."""
+
+    def __init__(self, ros_node, name: str = '/homography_pose_node') -> None:
+        self.poses: dict[int, PoseStamped] = {}
+        self.status = None
+        self.image = ros_node.create_publisher(Image, '/onboard/image_raw', RELIABLE)
+        self.compressed = ros_node.create_publisher(CompressedImage,
+                                                    '/onboard/image_raw/compressed', RELIABLE)
+        ros_node.create_subscription(
+            PoseStamped, '/onboard/pose',
+            lambda m: self.poses.setdefault(stamp_to_ns(m.header.stamp), m), RELIABLE)
+        ros_node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 50)
+        self.name = name
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name == self.name:
+                self.status = status
+
+    def value(self, key: str) -> str | None:
+        values = {} if self.status is None else {kv.key: kv.value for kv in self.status.values}
+        return values.get(key)
+
+    def ready(self) -> bool:
+        return (self.image.get_subscription_count() > 0
+                and self.compressed.get_subscription_count() > 0)
+
+
+def header(k: int) -> Header:
+    """Header of the k-th test frame (15 frames per second)."""
+    return Header(stamp=ns_to_stamp(1_000_000_000 + k * 66_666_667),
+                  frame_id='onboard_camera_optical')
+
+
+def level_pose(x: float, y: float, z: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+    return Rotation.from_euler('z', yaw).as_matrix(), np.array([x, y, z])
+
+
+def test_malformed_images_are_counted_skipped_and_the_node_goes_on(ros_node, processes, cfg):
+    proc = processes('homography_pose_node', POSE_NODE_ARGS)
+    probe = Probe(ros_node)
+    assert wait_for(probe.ready, 30)
+    scene = OnboardScene(cfg.camera, cfg.camera_to_body, seed=1)
+    good = scene.render(*level_pose(0.0, 0.0, 1.0, 0.0))      # the configured first pose
+    wrong_encoding = Image(header=header(0), height=480, width=640, encoding='32FC1', step=2560)
+    wrong_encoding.data = bytes(480 * 2560)
+    probe.image.publish(wrong_encoding)
+    probe.image.publish(bgr_to_image(good[:240, :320], header(1)))           # wrong size
+    garbage = CompressedImage(header=header(2), format='jpeg')
+    garbage.data = b'\xff\xd8 not a jpeg at all'
+    probe.compressed.publish(garbage)
+    # The same frame on both topics: processed once, the copy is skipped as stale.
+    probe.image.publish(bgr_to_image(good, header(3)))
+    probe.compressed.publish(bgr_to_compressed(good, header(3)))
+    assert wait_for(lambda: probe.value('stale') == '1' and probe.value('malformed') == '3', 15), \
+        probe.status
+    assert list(probe.poses) == [stamp_to_ns(header(3).stamp)]
+    p, q = msg_to_pose(probe.poses[stamp_to_ns(header(3).stamp)])
+    assert probe.poses[stamp_to_ns(header(3).stamp)].header.frame_id == 'world'
+    assert np.allclose(p, [0.0, 0.0, 1.0], atol=1e-9) and abs(q[3]) == pytest.approx(1.0)
+    assert proc.poll() is None
+    log = processes.log('homography_pose_node')
+    assert 'unsupported encoding' in log and 'expected 640x480' in log and 'cannot decode' in log
+
+
+def test_textureless_and_blurred_frames_give_no_pose_and_diagnostics_say_why(
+        ros_node, processes, cfg):
+    processes('homography_pose_node', POSE_NODE_ARGS)
+    probe = Probe(ros_node)
+    assert wait_for(probe.ready, 30)
+    scene = OnboardScene(cfg.camera, cfg.camera_to_body, seed=2)
+    blank = OnboardScene(cfg.camera, cfg.camera_to_body, np.full((8, 8, 3), 140, np.uint8), seed=2)
+    truth = [level_pose(0.0, 0.0, 1.0, 0.0), level_pose(0.01, 0.0, 1.0, 0.0),
+             level_pose(0.02, -0.01, 1.01, 0.01), level_pose(0.03, -0.01, 1.02, 0.02),
+             level_pose(0.04, -0.02, 1.03, 0.03)]
+    frames = [scene.render(*truth[0]), scene.render(*truth[1]),
+              blank.render(*truth[2]),                                 # texture-less
+              scene.render(*truth[3], blur_sigma=6.0),                  # defocused
+              scene.render(*truth[4])]
+    for k, img in enumerate(frames[:4]):
+        probe.compressed.publish(bgr_to_compressed(img, header(k)))
+    assert wait_for(lambda: probe.value('frames') == '4', 15), probe.status
+    stamps = [stamp_to_ns(header(k).stamp) for k in range(5)]
+    assert sorted(probe.poses) == stamps[:2]
+    assert probe.status.level == DiagnosticStatus.WARN
+    assert probe.status.message.startswith('tracking lost: blurred or texture-less')
+    assert probe.value('lost') == '2' and probe.value('lost_frames') == '2'
+    assert probe.value('last_loss_stamp') == f'{stamps[3] * 1e-9:.3f}'
+    # The next sharp frame is tracked again, and correctly.
+    probe.compressed.publish(bgr_to_compressed(frames[4], header(4)))
+    assert wait_for(lambda: probe.value('frames') == '5', 15), probe.status
+    assert sorted(probe.poses) == [stamps[0], stamps[1], stamps[4]]
+    assert probe.status.level == DiagnosticStatus.OK and probe.value('poses') == '3'
+    R, p_true = truth[4]
+    p, q = msg_to_pose(probe.poses[stamps[4]])
+    assert np.linalg.norm(p - p_true) < 0.01 * p_true[2]
+    assert np.degrees((Rotation.from_matrix(R).inv() * Rotation.from_quat(q)).magnitude()) < 0.5
+
+
+# --------------------------------------------------------------- target node
+
+ASSETS = REPO / 'uav_vs' / 'sim' / 'assets'
+
+
+def test_target_found_at_a_known_homography_and_not_where_it_is_absent(ros_node, processes):
+    """box.png pasted into an aerial image through a known H (rotated, scaled, in
+    perspective): the five published points are H's corners and centre to 2 px; the
+    aerial image alone: not found."""
+    processes('target_tracker_node', ['--params-file', str(CONFIG),
+                                      '-p', f"target.template:={ASSETS / 'box.png'}",
+                                      '-p', 'target.image_qos:=reliable',
+                                      '-p', 'target.diagnostics_period:=0.1'])
+    template = cv2.imread(str(ASSETS / 'box.png'), cv2.IMREAD_GRAYSCALE)
+    h, w = template.shape
+    c, s = 0.85 * np.cos(np.radians(25)), 0.85 * np.sin(np.radians(25))
+    H = np.array([[c, -s, 260.0], [s, c, 90.0], [3e-4, -2e-4, 1.0]])
+    ground = cv2.imread(str(ASSETS / 'aero3.jpg'))
+    scene = ground.copy()
+    inside = cv2.warpPerspective(np.full_like(template, 255), H, (640, 480)) > 0
+    scene[inside] = cv2.cvtColor(cv2.warpPerspective(template, H, (640, 480)),
+                                 cv2.COLOR_GRAY2BGR)[inside]
+    ref = np.array([[0, 0], [w, 0], [w, h], [0, h], [w / 2, h / 2]], float)
+    expected = cv2.perspectiveTransform(ref[None], H)[0]
+
+    targets: list[PolygonStamped] = []
+    found: list[bool] = []
+    ros_node.create_subscription(PolygonStamped, '/onboard/target', targets.append, RELIABLE)
+    ros_node.create_subscription(Bool, '/onboard/target_found', lambda m: found.append(m.data),
+                                 RELIABLE)
+    pub = ros_node.create_publisher(CompressedImage, '/onboard/image_raw/compressed', RELIABLE)
+    assert wait_for(lambda: pub.get_subscription_count() > 0, 30)
+    pub.publish(bgr_to_compressed(scene, header(0)))
+    pub.publish(bgr_to_compressed(ground, header(1)))
+    assert wait_for(lambda: len(found) == 2, 30), found
+    assert found == [True, False] and len(targets) == 1
+    assert targets[0].header.stamp == header(0).stamp
+    assert targets[0].header.frame_id == 'onboard_camera_optical'
+    got = polygon_to_array(targets[0])
+    assert got.shape == (5, 3)
+    assert np.abs(got[:, :2] - expected).max() < 2.0, got[:, :2] - expected
+
+
+@pytest.mark.parametrize('template, expected', [
+    ('/nonexistent/helipad.png', "cannot read an image from '/nonexistent"),
+    (str(ASSETS / 'README.md'), 'cannot read an image'),
+    ('blank.png', 'features'),                  # readable, but nothing to match
+])
+def test_unusable_template_stops_target_node_with_one_line(tmp_path, template, expected):
+    if template == 'blank.png':
+        template = str(tmp_path / template)
+        cv2.imwrite(template, np.full((200, 300), 128, np.uint8))
+    run = subprocess.run([executable('target_tracker_node'), '--ros-args', '--params-file',
+                          str(CONFIG), '-p', f'target.template:={template}'],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2
+    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
+    assert len(fatal) == 1, run.stdout + run.stderr
+    assert 'target.template: ' in fatal[0] and expected in fatal[0], fatal[0]

@@ -1,0 +1,110 @@
+"""target_tracker_node: a planar target found in every onboard frame (chapter Fig. 2).
+
+The target (a helipad, a car seen from above) is given by a template image file
+(`target.template`). Its features are matched in each frame (SIFT, or the free ORB,
+section 2.2) and a robust homography (section 2.3, Algorithm 1) maps the
+template onto the frame.
+
+Subscribes `onboard/image_raw` (sensor_msgs/Image: bgr8, rgb8, bgra8, rgba8, mono8) and
+`onboard/image_raw/compressed` (sensor_msgs/CompressedImage: jpeg, png), sensor-data
+QoS unless `target.image_qos` is `reliable`; images of any size.
+Publishes, for every frame where the target is found, `onboard/target`
+(geometry_msgs/PolygonStamped, the image's header: stamp and optical frame) with five
+points in the image's raw pixel coordinates (x right, y down, z = 0): the template's
+outer corners (0, 0), (w, 0), (w, h), (0, h) (top-left, top-right, bottom-right,
+bottom-left) mapped into the image, then the target's centre (the template centre
+(w/2, h/2) through the homography, not the corners' mean);
+`onboard/target_found` (std_msgs/Bool) for every frame processed, true or false; and
+/diagnostics (frames, found, not found, malformed, inliers, reason).
+"""
+import time
+
+import cv2
+import numpy as np
+from geometry_msgs.msg import PolygonStamped
+from rclpy.node import Node
+from std_msgs.msg import Bool, Header
+
+from uav_vs.ros.convert import points_to_polygon
+from uav_vs.ros.image_input import QOS_CHOICES, ImageInput
+from uav_vs.ros.node_main import OK, WARN, Diagnostics, run
+from uav_vs.ros.params import Param, ParameterError, T, declare
+from uav_vs.vision.features import KINDS
+from uav_vs.vision.homography import METHODS
+from uav_vs.vision.target_tracking import PlanarTargetTracker
+
+PARAMS = [
+    Param('target.template', T.STRING, description=(
+        'image file of the target as seen from above (any format OpenCV reads)')),
+    Param('target.features', T.STRING, 'sift', 'feature detector and descriptor (section 2.2)',
+          choices=KINDS),
+    Param('target.max_features', T.INTEGER, 0, 'features per image (0: every SIFT feature, '
+          '5000 ORB)', 0, 100000),
+    Param('target.ratio', T.DOUBLE, 0.75, "Lowe's ratio test: nearest / second nearest",
+          0.05, 0.99),
+    Param('target.method', T.STRING, 'ransac', 'robust homography estimator (section 2.3)',
+          choices=METHODS),
+    Param('target.threshold_px', T.DOUBLE, 3.0, 'homography inlier distance, px', 0.1, 50.0),
+    Param('target.min_inliers', T.INTEGER, 12, 'fewer inliers: not found', 4, 10000),
+    Param('target.image_qos', T.STRING, 'sensor_data',
+          'image subscriptions: sensor_data (best effort) or reliable', choices=QOS_CHOICES),
+    Param('target.diagnostics_period', T.DOUBLE, 1.0, 'diagnostics period, s', 0.05, 60.0),
+]
+
+
+def read_template(path: str) -> np.ndarray:
+    """The template as 8-bit grey; ParameterError naming target.template if unreadable."""
+    template = cv2.imread(path, cv2.IMREAD_GRAYSCALE) if path else None
+    if template is None:
+        raise ParameterError(f'target.template: cannot read an image from {path!r}')
+    return template
+
+
+class TargetTrackerNode(Node):
+    def __init__(self) -> None:
+        super().__init__('target_tracker_node')
+        p = declare(self, PARAMS)
+        template = read_template(p['target.template'])
+        try:
+            self.tracker = PlanarTargetTracker(
+                template, kind=p['target.features'], ratio=p['target.ratio'],
+                method=p['target.method'], threshold_px=p['target.threshold_px'],
+                min_inliers=p['target.min_inliers'], max_features=p['target.max_features'])
+        except ValueError as err:      # too few features in the template
+            raise ParameterError(f"target.template: {p['target.template']}: {err}") from None
+        self.target_pub = self.create_publisher(PolygonStamped, 'onboard/target', 10)
+        self.found_pub = self.create_publisher(Bool, 'onboard/target_found', 10)
+        self.images = ImageInput(self, 'onboard/image_raw', p['target.image_qos'], self.on_frame)
+        self.counts = dict(frames=0, found=0, not_found=0)
+        self.last = dict(reason='no image yet', inliers=0, process_ms=float('nan'))
+        self.diag = Diagnostics(self, hardware_id=p['target.template'])
+        self.create_timer(p['target.diagnostics_period'], self.publish_diagnostics)
+        self.get_logger().info(f"template {p['target.template']} ({template.shape[1]}x"
+                               f"{template.shape[0]} px), {p['target.features']} features")
+
+    def on_frame(self, gray: np.ndarray, header: Header) -> None:
+        self.counts['frames'] += 1
+        start = time.perf_counter()
+        result = self.tracker.find(gray)
+        self.last = dict(reason=result.reason, inliers=result.n_inliers,
+                         process_ms=round((time.perf_counter() - start) * 1e3, 2))
+        self.counts['found' if result.ok else 'not_found'] += 1
+        if result.ok:
+            self.target_pub.publish(points_to_polygon(np.vstack([result.corners, result.center]),
+                                                      header))
+        self.found_pub.publish(Bool(data=bool(result.ok)))
+
+    def publish_diagnostics(self) -> None:
+        if self.last['reason']:
+            level, message = WARN, f"target not found: {self.last['reason']}"
+        else:
+            level, message = OK, 'target found'
+        self.diag.publish(level, message, {**self.counts, **self.images.counts, **self.last})
+
+
+def main(args: list[str] | None = None) -> None:
+    run(TargetTrackerNode, 'target_tracker_node', args)
+
+
+if __name__ == '__main__':
+    main()

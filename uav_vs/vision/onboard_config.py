@@ -1,0 +1,210 @@
+"""Onboard camera and plane-pose configuration (chapter section 4; config/onboard.yaml).
+
+`SETTINGS` lists every flat parameter key with its default, meaning and limits, so a
+node can declare them; `load_onboard_config(flat_params)` checks them and builds the
+camera, its extrinsic, the first frame's plane homography and the estimator settings.
+A bad value raises CalibrationError (calibration, extrinsic, initialisation) or
+ValueError (tuning), one line naming the parameter.
+"""
+from dataclasses import dataclass
+from typing import Mapping
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from uav_vs.vision.camera import CalibrationError, Camera
+from uav_vs.vision.homography import METHODS
+from uav_vs.vision.klt import KltParams
+from uav_vs.vision.plane_pose import PlanePoseParams, camera_pose, plane_homography
+
+REQUIRED = None
+INIT_MODES = ('pose', 'reference_points')
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One flat parameter: key, kind, default (REQUIRED if none), meaning, limits.
+
+    kind is 'int', 'float', 'str' or 'floats' (a list of numbers of length `size`;
+    size 0 means x y pairs, at least four of them).
+    """
+
+    key: str
+    kind: str
+    default: object
+    description: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] = ()
+    size: int | None = None
+
+
+SETTINGS = (
+    Setting('camera.width', 'int', REQUIRED, 'image width, px', 1, 20000),
+    Setting('camera.height', 'int', REQUIRED, 'image height, px', 1, 20000),
+    Setting('camera.K', 'floats', REQUIRED, 'intrinsics K (eq 15), 9 numbers row-major, px',
+            size=9),
+    Setting('camera.D', 'floats', REQUIRED, 'plumb-bob distortion k1 k2 p1 p2 k3', size=5),
+    Setting('camera.frame_id', 'str', 'onboard_camera_optical', 'optical frame of the images'),
+    Setting('camera_to_base_link.xyz', 'floats', [0.0, 0.0, 0.0],
+            'optical frame origin in base_link (FLU), m', size=3),
+    Setting('camera_to_base_link.rpy', 'floats', [np.pi, 0.0, -np.pi / 2],
+            'optical frame orientation in base_link, fixed-axis roll pitch yaw, rad', size=3),
+    Setting('init.mode', 'str', 'pose',
+            'first-frame plane homography from: pose or reference_points', choices=INIT_MODES),
+    Setting('init.position', 'floats', [0.0, 0.0, 1.0], 'base_link position in world at the '
+            'first frame (z = height above the ground plane), m', size=3),
+    Setting('init.rpy', 'floats', [0.0, 0.0, 0.0], 'base_link roll pitch yaw in world at the '
+            'first frame, rad', size=3),
+    Setting('init.plane_points', 'floats', [0.0] * 8, 'reference points on the ground plane, '
+            'x1 y1 x2 y2 ... (>= 4 points), m', size=0),
+    Setting('init.image_points', 'floats', [0.0] * 8, 'their raw pixels in the first frame, '
+            'u1 v1 u2 v2 ...', size=0),
+    Setting('klt.win_size', 'int', 15, 'L-K window side, odd, px', 3, 99),
+    Setting('klt.max_level', 'int', 3, 'deepest pyramid level (section 2.1.2)', 0, 6),
+    Setting('klt.max_iterations', 'int', 20, 'L-K iterations per pyramid level', 1, 1000),
+    Setting('klt.epsilon', 'float', 0.03, 'L-K stops when its update is below this, px',
+            1e-6, 10.0),
+    Setting('klt.min_eig_threshold', 'float', 1e-3, 'reject L-K windows flatter than this',
+            0.0, 1.0),
+    Setting('klt.fb_max_error_px', 'float', 0.5, 'forward-backward disagreement allowed, px',
+            0.01, 50.0),
+    Setting('features.max_features', 'int', 120, 'features kept after a re-anchor', 8, 5000),
+    Setting('features.min_tracks', 'int', 20, 'fewer surviving tracks is a tracking loss',
+            4, 5000),
+    Setting('features.quality_level', 'float', 0.01, 'GFTT corner strength relative to the '
+            'best', 1e-4, 0.99),
+    Setting('features.min_distance_px', 'float', 20.0, 'spacing between features, px',
+            1.0, 1000.0),
+    Setting('features.block_size', 'int', 5, 'GFTT eigenvalue window at the detection level, '
+            'odd, px', 3, 31),
+    Setting('features.detect_level', 'int', 1, 'pyramid level features are detected on', 0, 3),
+    Setting('homography.method', 'str', 'opencv_ransac', 'robust homography estimator',
+            choices=METHODS),
+    Setting('homography.threshold_px', 'float', 2.0, 'inlier distance, px', 0.1, 50.0),
+    Setting('homography.confidence', 'float', 0.995, 'RANSAC confidence p (Algorithm 1)',
+            0.5, 0.999999),
+    Setting('homography.max_trials', 'int', 500, 'RANSAC trial cap', 1, 100000),
+    Setting('homography.min_inliers', 'int', 15, 'fewer inliers is a tracking loss', 4, 5000),
+    Setting('pose.max_rms_px', 'float', 1.5, 'refined pose reprojection RMS above this is a '
+            'loss, px', 0.01, 100.0),
+    Setting('keyframe.reanchor_inliers', 'int', 70, 're-anchor when inliers drop below this',
+            4, 5000),
+    Setting('keyframe.reanchor_coverage', 'float', 0.35, "re-anchor when the inliers' bounding "
+            'box covers less than this fraction of the image', 0.0, 0.99),
+    Setting('image_quality.blur_level', 'int', 2, 'pyramid level the sharpness is measured on',
+            0, 4),
+    Setting('image_quality.min_sharpness', 'float', 50.0, 'variance of the Laplacian below '
+            'this is a blurred or texture-less image (loss)', 0.0, 1e6),
+)
+
+@dataclass(frozen=True)
+class OnboardConfig:
+    """Everything the plane-pose estimator needs (section 4)."""
+
+    camera: Camera                 # intrinsics and distortion; R, t unused (identity, zero)
+    camera_to_body: np.ndarray     # 4x4 pose of the optical frame in base_link, x_b = T x_c
+    initial_homography: np.ndarray  # H_0: plane (X, Y, 1), m -> ideal pixels of frame 0
+    params: PlanePoseParams
+    init_mode: str
+
+
+def load_onboard_config(params: Mapping[str, object]) -> OnboardConfig:
+    """Check flat parameters (keys of SETTINGS) and build the onboard configuration."""
+    v = {s.key: _value(params, s) for s in SETTINGS}
+    sub = {k.removeprefix('camera.'): x for k, x in v.items() if k.startswith('camera.')}
+    camera = Camera.from_params('onboard_camera', {**sub, 'R': np.eye(3).ravel(),
+                                                   't': np.zeros(3)}, 'camera.')
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler('xyz', v['camera_to_base_link.rpy']).as_matrix()
+    T[:3, 3] = v['camera_to_base_link.xyz']
+    if v['init.mode'] == 'pose':
+        R_wb = Rotation.from_euler('xyz', v['init.rpy']).as_matrix()
+        R, t = camera_pose(R_wb, np.array(v['init.position']), T)
+        if (-R.T @ t)[2] <= 0 or R[2, 2] >= 0:
+            raise CalibrationError('init.position: the camera must be above the ground plane '
+                                   '(z > 0) and look down at it (check init.rpy and '
+                                   'camera_to_base_link.rpy)')
+        H0 = plane_homography(camera.K, R, t)
+    else:
+        H0 = _reference_homography(camera, np.array(v['init.plane_points']),
+                                   np.array(v['init.image_points']))
+    for low, high in (('features.min_tracks', 'features.max_features'),
+                      ('homography.min_inliers', 'features.min_tracks'),
+                      ('homography.min_inliers', 'keyframe.reanchor_inliers'),
+                      ('keyframe.reanchor_inliers', 'features.max_features')):
+        if v[low] > v[high]:
+            raise ValueError(f'{low}: {v[low]} must not exceed {high} ({v[high]})')
+    if v['klt.win_size'] % 2 == 0 or v['features.block_size'] % 2 == 0:
+        bad = 'klt.win_size' if v['klt.win_size'] % 2 == 0 else 'features.block_size'
+        raise ValueError(f'{bad}: expected an odd number, got {v[bad]}')
+    klt = KltParams(v['klt.win_size'], v['klt.max_level'], v['klt.max_iterations'],
+                    v['klt.epsilon'], v['klt.min_eig_threshold'], v['klt.fb_max_error_px'],
+                    v['features.quality_level'], v['features.min_distance_px'],
+                    v['features.block_size'], v['features.detect_level'])
+    pose = PlanePoseParams(
+        klt, v['features.max_features'], v['features.min_tracks'], v['homography.min_inliers'],
+        v['keyframe.reanchor_inliers'], v['keyframe.reanchor_coverage'],
+        v['homography.method'], v['homography.threshold_px'], v['homography.confidence'],
+        v['homography.max_trials'], v['pose.max_rms_px'], v['image_quality.blur_level'],
+        v['image_quality.min_sharpness'])
+    return OnboardConfig(camera, T, H0, pose, v['init.mode'])
+
+
+def _value(params: Mapping[str, object], s: Setting) -> object:
+    """The checked value of one setting (camera.* details are left to Camera.from_params)."""
+    raw = params.get(s.key)
+    if raw is None:
+        if s.default is REQUIRED:
+            raise CalibrationError(f'{s.key}: missing, expected {_expected(s)}')
+        return s.default
+    if s.key.startswith('camera.') and s.key != 'camera.frame_id':
+        return raw
+    if s.kind == 'str':
+        ok = isinstance(raw, str) and (not s.choices or raw in s.choices)
+    elif s.kind == 'floats':
+        ok = (not isinstance(raw, (str, bytes)) and hasattr(raw, '__len__')
+              and all(_is_number(x) for x in raw)
+              and (len(raw) == s.size if s.size else len(raw) >= 8 and len(raw) % 2 == 0))
+    else:
+        ok = ((isinstance(raw, int) if s.kind == 'int' else _is_number(raw))
+              and not isinstance(raw, bool) and s.low <= raw <= s.high)
+    if not ok:
+        error = CalibrationError if s.key.startswith(('camera', 'init')) else ValueError
+        text = repr(raw) if len(repr(raw)) < 80 else repr(raw)[:77] + '...'
+        raise error(f'{s.key}: expected {_expected(s)}, got {text}')
+    if s.kind == 'floats':
+        return [float(x) for x in raw]
+    return {'int': int, 'float': float, 'str': str}[s.kind](raw)
+
+
+def _expected(s: Setting) -> str:
+    if s.kind == 'str':
+        return 'one of ' + ', '.join(s.choices) if s.choices else 'a string'
+    if s.kind == 'floats':
+        return f'{s.size} numbers' if s.size else 'x y pairs of numbers, at least 4 pairs'
+    return f"{'an integer' if s.kind == 'int' else 'a number'} in [{s.low:g}, {s.high:g}]"
+
+
+def _is_number(x: object) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and bool(np.isfinite(x))
+
+
+def _reference_homography(camera: Camera, plane: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """H_0 by least squares (DLT) from >= 4 plane points and their raw pixels."""
+    plane, image = plane.reshape(-1, 2), image.reshape(-1, 2)
+    if len(plane) != len(image):
+        raise CalibrationError(f'init.image_points: {len(image)} points for '
+                               f'{len(plane)} init.plane_points')
+    ideal = camera.undistort(image)
+    H, _ = cv2.findHomography(plane, ideal, 0)
+    if H is None or abs(np.linalg.det(H)) < 1e-12:
+        raise CalibrationError('init.plane_points: degenerate (three or more collinear?)')
+    q = plane @ H[:2, :2].T + H[:2, 2]
+    q = q / (plane @ H[2, :2] + H[2, 2])[:, None]
+    rms = float(np.sqrt(np.mean(np.sum((q - ideal) ** 2, axis=1))))
+    if rms > 3.0:
+        raise CalibrationError(f'init.image_points: do not match init.plane_points by a plane '
+                               f'homography (RMS {rms:.1f} px > 3 px)')
+    return H / H[2, 2]
