@@ -1,0 +1,143 @@
+"""Fuzzy controllers from config/fuzzy_controller.yaml closed around the velocity plant:
+settling, no oscillation, bounded commands, integral action, safety and config errors."""
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from uav_vs.control.controllers import (PoseController, TrackingController, config_from_params,
+                                        load_config, wrap_angle)
+from uav_vs.sim.velocity_plant import VelocityPlant
+
+YAML = Path(__file__).resolve().parents[1] / 'config' / 'fuzzy_controller.yaml'
+CFG = load_config(YAML)
+DT = 0.02
+# Bounds stated for the default tuning: within 6 s every axis is inside 5 cm / 2 deg
+# and stays there; the error never crosses zero by more than 1 cm / 0.5 deg.
+SETTLE_S, POS_TOL, YAW_TOL = 6.0, 0.05, np.radians(2.0)
+POS_OVERSHOOT, YAW_OVERSHOOT = 0.01, np.radians(0.5)
+
+
+def fly(ctl, plant, setpoint, seconds):
+    errors, commands = [], []
+    for _ in range(int(round(seconds / DT))):
+        e = setpoint - plant.pose
+        e[3] = wrap_angle(e[3])
+        u = ctl.step(e, DT)
+        errors.append(e)
+        commands.append(u)
+        plant.step(u)
+    return np.array(errors), np.array(commands)
+
+
+@pytest.mark.parametrize('tau,delay', [((0.3, 0.3, 0.25, 0.2), 0.1), ((0.45, 0.45, 0.4, 0.3), 0.2)])
+def test_each_axis_settles_from_2m_and_90deg_without_oscillation(tau, delay):
+    ctl = PoseController.from_config(CFG)
+    setpoint = np.array([2.0, -2.0, 2.0, np.pi / 2])
+    errors, commands = fly(ctl, VelocityPlant(DT, tau=tau, delay=delay), setpoint, 10.0)
+    t = np.arange(len(errors)) * DT
+    tol = np.array([POS_TOL] * 3 + [YAW_TOL])
+    overshoot = np.array([POS_OVERSHOOT] * 3 + [YAW_OVERSHOOT])
+    after = t >= SETTLE_S
+    assert (np.abs(errors[after]) < tol).all()
+    crossed = -(errors * np.sign(setpoint)).min(axis=0)       # how far past zero each axis went
+    assert (crossed < overshoot).all(), crossed
+    assert np.isfinite(commands).all() and (np.abs(commands) <= ctl.limit).all()
+    assert (np.abs(commands).max(axis=0) == ctl.limit).all()  # it does use the full authority
+
+
+def test_tracking_controller_centres_a_target_30deg_off():
+    # Pinhole heading loop: target at bearing 30 deg, f = 500 px; error = centre - target column.
+    ctl, f, dt = TrackingController.from_config(CFG), 500.0, 1 / 30
+    plant = VelocityPlant(dt)
+    errs = []
+    for _ in range(int(8 / dt)):
+        e = f * np.tan(np.radians(30) - plant.pose[3])
+        u = ctl.step(e, dt)
+        assert abs(u) <= ctl.limit[0]
+        errs.append(e)
+        plant.step(np.array([0, 0, 0, u]))
+    errs = np.array(errs)
+    assert abs(errs[-1]) < 2.0 and errs.min() > -2.0     # centred, no overshoot past 2 px
+    assert plant.pose[3] == pytest.approx(np.radians(30), abs=np.radians(0.3))
+
+
+def pid_config(cfg):
+    """45-rule PID-like base on z: error (5 sets) x rate (3) x integral (3)."""
+    cfg = copy.deepcopy(cfg)
+    z = cfg['axes']['z']
+    e5, r3 = ['NB', 'NS', 'ZE', 'PS', 'PB'], ['N', 'ZE', 'P']
+    out = z['command']['sets']
+    z['error'] = {'gain': 0.7, 'sets': e5, 'apexes': [-1.0, -0.2, 0.0, 0.2, 1.0]}
+    z['rate'] = {'gain': 0.5, 'sets': r3, 'apexes': [-1.0, 0.0, 1.0]}
+    z['integral'] = {'gain': 1.0, 'sets': r3, 'apexes': [-1.0, 0.0, 1.0]}
+    z['integral_limit'] = 0.6
+    z['rules'] = [f'IF error IS {e} AND rate IS {r} AND integral IS {i} THEN command IS '
+                  f'{out[min(6, max(0, 3 + a + b + c))]}'
+                  for a, e in zip(range(-2, 3), e5) for b, r in zip(range(-1, 2), r3)
+                  for c, i in zip(range(-1, 2), r3)]
+    return cfg
+
+
+def test_integral_input_removes_the_offset_a_steady_drift_leaves():
+    drift = (0.0, 0.0, -0.15, 0.0)                       # e.g. a sinking autopilot velocity loop
+    setpoint = np.array([0.0, 0.0, 1.0, 0.0])
+    pid = pid_config(CFG)
+    assert len(pid['axes']['z']['rules']) == 45
+    pd_err, _ = fly(PoseController.from_config(CFG), VelocityPlant(DT, pose=(0, 0, 1, 0), drift=drift), setpoint, 20)
+    pid_err, pid_cmd = fly(PoseController.from_config(pid), VelocityPlant(DT, pose=(0, 0, 1, 0), drift=drift), setpoint, 20)
+    assert abs(pd_err[-1, 2]) > 0.05                     # PD: steady offset
+    assert abs(pid_err[-1, 2]) < 0.01                    # PID-like: none
+    assert np.abs(pid_cmd[:, 2]).max() <= CFG['axes']['z']['limit']
+
+
+def test_non_finite_errors_never_reach_the_command():
+    ctl = PoseController.from_config(CFG)
+    rng = np.random.default_rng(1)
+    bad = [np.nan, np.inf, -np.inf, 1e308, -1e308]
+    for k in range(300):
+        e = rng.normal(0, 3, 4)
+        e[rng.integers(4)] = bad[k % len(bad)]
+        dt = [DT, 0.0, -1.0, np.nan, np.inf][k % 5] if k % 7 == 0 else DT
+        u = ctl.step(e, dt)
+        assert np.isfinite(u).all() and (np.abs(u) <= ctl.limit).all()
+        assert (u[~np.isfinite(e)] == 0).all() and not ctl.valid[~np.isfinite(e)].any()
+    # A NaN on x leaves the other axes under control.
+    ctl.reset()
+    u = ctl.step(np.array([np.nan, 1.0, -1.0, 0.3]), DT)
+    assert u[0] == 0 and u[1] > 0 and u[2] < 0 and u[3] > 0
+    assert ctl.valid.tolist() == [False, True, True, True]
+
+
+def test_yaw_error_is_wrapped():
+    ctl = PoseController.from_config(CFG)
+    u = ctl.step(np.array([0, 0, 0, np.radians(350)]), DT)      # = -10 deg: turn right
+    assert u[3] < 0
+
+
+def test_flat_ros_parameters_give_the_same_config():
+    params = yaml.safe_load(YAML.read_text())['/**']['ros__parameters']
+
+    def flatten(d, prefix=''):
+        for k, v in d.items():
+            if isinstance(v, dict):
+                yield from flatten(v, f'{prefix}{k}.')
+            else:
+                yield f'{prefix}{k}', tuple(v) if isinstance(v, list) else v
+
+    assert config_from_params(dict(flatten(params))) == CFG
+
+
+def test_unknown_set_or_variable_in_yaml_fails_with_one_line():
+    text = YAML.read_text().replace('"IF error IS PM AND rate IS ZE THEN command IS PM"',
+                                    '"IF error IS PM AND rate IS ZE THEN command IS PX"', 1)
+    cfg = config_from_params(yaml.safe_load(text)['/**']['ros__parameters'])
+    with pytest.raises(ValueError) as err:
+        PoseController.from_config(cfg)
+    assert "axis 'x'" in str(err.value) and "'PX'" in str(err.value) and '\n' not in str(err.value)
+    cfg = copy.deepcopy(CFG)
+    cfg['axes']['yaw']['rules'][0] = 'IF heading IS NB THEN command IS NB'
+    with pytest.raises(ValueError, match="axis 'yaw'.*'heading'"):
+        PoseController.from_config(cfg)

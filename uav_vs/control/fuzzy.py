@@ -1,0 +1,569 @@
+"""Mamdani fuzzy inference defined entirely by data (chapter section 6).
+
+The fuzzy controllers of section 6 (Olivares-Méndez et al.) are Mamdani systems:
+crisp inputs are fuzzified by membership functions, rules "IF a IS A AND b IS B
+THEN u IS U" fire with the AND of their antecedent memberships, each fired rule
+shapes its output set (implication), the shaped sets are aggregated into one
+output fuzzy set, and a defuzzifier turns that set into one crisp command.
+
+A system is a dict (usually loaded from YAML)::
+
+    {'inputs': {'error': VAR, 'rate': VAR},      # order = input vector order
+     'output': {'command': VAR},                 # exactly one output
+     'rules': ['IF error IS NB AND rate IS ZE THEN command IS NM',
+               'IF error IS ZE THEN command IS ZE WITH 0.5', ...],
+     'and': 'min',              # min | product       (AND of antecedents)
+     'implication': 'min',      # min | product       (clip or scale the output set)
+     'aggregation': 'max',      # max | sum
+     'defuzzification': 'centroid',   # centroid | bisector | mom | height
+     'resolution': 201,         # points of the discretised output universe
+     'default': 0.0}            # output when the inputs are not finite or no rule fires
+
+and a variable VAR is either a 50 %-overlap triangular partition
+``{'sets': ['NB', 'NS', 'ZE', 'PS', 'PB'], 'apexes': [-1, -0.3, 0, 0.3, 1]}``
+(`partition`; apexes may be denser near zero, range defaults to the end apexes)
+or explicit sets ``{'range': [lo, hi], 'mf': {'NB': [a, b, c], ...}}`` where a
+parameter list of length 2 is a Gaussian [mean, sigma], 3 a triangle [a, b, c]
+and 4 a trapezoid [a, b, c, d]. Rules are ``IF <in> IS <set> [AND <in> IS <set>]...
+THEN <out> IS <set> [WITH <weight in [0, 1]>]`` (keywords in any case); the
+weight multiplies the rule's firing strength.
+
+Semantics (vectorised; everything shape-dependent is precomputed at load):
+- inputs are clipped to their variable's range, so the end sets act as
+  saturating shoulders; a row with any non-finite input gives `default` and
+  ok=False, as does a row where no rule fires;
+- the output universe is `resolution` even points plus every breakpoint and centre
+  of the output sets. A unit (an output set under max aggregation, a rule under sum
+  aggregation with min implication) is shaped by its level; with min implication the
+  two points where each unit reaches its level are added, and the aggregated set is
+  linear between points. Centroid and bisector are exact for that piecewise-linear
+  set, which is scikit-fuzzy's ControlSystem definition (the tests check equality);
+  mom is the mean of the flat top(s) at maximum membership (or of the points at the
+  maximum when there is no flat top); height is the level-weighted mean of the set
+  centres (apex, core middle or Gaussian mean).
+"""
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+AND_OPS = ('min', 'product')
+IMPLICATIONS = ('min', 'product')
+AGGREGATIONS = ('max', 'sum')
+DEFUZZIFIERS = ('centroid', 'bisector', 'mom', 'height')
+SYSTEM_KEYS = {'inputs', 'output', 'rules', 'and', 'implication', 'aggregation',
+               'defuzzification', 'resolution', 'default'}
+VARIABLE_KEYS = {'range', 'sets', 'apexes', 'mf'}
+
+_RULE = re.compile(r'^\s*IF\s+(?P<ante>.+?)\s+THEN\s+(?P<out>.+?)'
+                   r'(?:\s+WITH\s+(?P<weight>\S+))?\s*$', re.IGNORECASE)
+_CLAUSE = re.compile(r'^\s*(\w+)\s+IS\s+(\w+)\s*$', re.IGNORECASE)
+_AND = re.compile(r'\s+AND\s+', re.IGNORECASE)
+
+
+def trapezoid(x: np.ndarray, a: float, b: float, c: float, d: float) -> np.ndarray:
+    """Trapezoidal membership [a, b, c, d] (a <= b <= c <= d); a == b or c == d is a vertical edge."""
+    x = np.asarray(x, dtype=float)
+    y = np.ones_like(x)
+    y = np.where(x < b, (x - a) / (b - a) if b > a else 0.0, y)
+    y = np.where(x > c, (d - x) / (d - c) if d > c else 0.0, y)
+    return np.clip(y, 0.0, 1.0)
+
+
+def triangle(x: np.ndarray, a: float, b: float, c: float) -> np.ndarray:
+    """Triangular membership [a, b, c]: 0 at a and c, 1 at the apex b."""
+    return trapezoid(x, a, b, b, c)
+
+
+def gaussian(x: np.ndarray, mean: float, sigma: float) -> np.ndarray:
+    """Gaussian membership exp(-(x - mean)^2 / (2 sigma^2))."""
+    return np.exp(-0.5 * ((np.asarray(x, dtype=float) - mean) / sigma) ** 2)
+
+
+def membership(x: np.ndarray, params: Sequence[float]) -> np.ndarray:
+    """Evaluate one set given as [mean, sigma], [a, b, c] or [a, b, c, d]."""
+    return (gaussian, triangle, trapezoid)[len(params) - 2](x, *params)
+
+
+def partition(names: Sequence[str], apexes: Sequence[float],
+              lo: float | None = None, hi: float | None = None) -> dict[str, list[float]]:
+    """50 %-overlap triangular partition: set k peaks at apexes[k], its feet are the
+    neighbouring apexes, the end sets are shoulders reaching lo / hi. Memberships sum
+    to 1 everywhere in [lo, hi]; apexes may be spaced non-uniformly (denser near zero)."""
+    a = [float(v) for v in apexes]
+    lo = a[0] if lo is None else float(lo)
+    hi = a[-1] if hi is None else float(hi)
+    if len(names) != len(a) or len(a) < 2:
+        raise ValueError(f'partition needs as many set names as apexes, at least 2 '
+                         f'(got {len(names)} names, {len(a)} apexes)')
+    if any(q <= p for p, q in zip(a, a[1:])) or lo > a[0] or hi < a[-1]:
+        raise ValueError(f'partition apexes must increase strictly within [{lo}, {hi}]: {a}')
+    ext = [lo] + a + [hi]
+    sets = {}
+    for k, name in enumerate(names):
+        left, apex, right = ext[k], ext[k + 1], ext[k + 2]
+        if k == 0 and lo < apex:
+            sets[name] = [lo, lo, apex, right]
+        elif k == len(a) - 1 and apex < hi:
+            sets[name] = [left, apex, hi, hi]
+        else:
+            sets[name] = [apex if k == 0 else left, apex, apex if k == len(a) - 1 else right]
+    return sets
+
+
+def _core(params: Sequence[float]) -> float:
+    """Centre used by the height method: Gaussian mean, triangle apex, trapezoid core middle."""
+    return params[0] if len(params) == 2 else 0.5 * (params[1] + params[-2])
+
+
+def _as_trapezoid(params: Sequence[float]) -> tuple[float, float, float, float]:
+    return (params[0], params[1], params[1], params[2]) if len(params) == 3 else tuple(params)
+
+
+def _edges(a, b, c, d, width):
+    """Trapezoid as min((x - a) * rise, (d - x) * fall) clipped to [0, 1]; a vertical edge
+    becomes a ramp 1e-12 * width wide, so the set is still exactly 1 at b and c."""
+    a, b, c, d = (np.asarray(v, dtype=float) for v in (a, b, c, d))
+    a = np.where(b > a, a, b - 1e-12 * width)
+    d = np.where(d > c, d, c + 1e-12 * width)
+    return a, 1.0 / (b - a), d, 1.0 / (d - c)
+
+
+@dataclass(frozen=True)
+class Variable:
+    """A linguistic variable: crisp range and named sets (parameter lists)."""
+    name: str
+    lo: float
+    hi: float
+    sets: dict[str, tuple[float, ...]]
+
+    @classmethod
+    def from_config(cls, name: str, cfg: Mapping) -> Variable:
+        """Build from {'sets': [...], 'apexes': [...], 'range'?} or {'range': [lo, hi], 'mf': {...}}."""
+        if not isinstance(cfg, Mapping):
+            raise ValueError(f'variable {name!r}: expected a mapping, got {type(cfg).__name__}')
+        unknown = set(cfg) - VARIABLE_KEYS
+        if unknown:
+            raise ValueError(f'variable {name!r}: unknown key(s) {sorted(unknown)}')
+        rng = cfg.get('range')
+        if rng is not None and (len(rng) != 2 or not float(rng[0]) < float(rng[1])):
+            raise ValueError(f'variable {name!r}: range must be [lo, hi] with lo < hi, got {list(rng)}')
+        if 'apexes' in cfg:
+            if 'mf' in cfg or 'sets' not in cfg:
+                raise ValueError(f"variable {name!r}: give either 'sets' + 'apexes' or 'mf'")
+            lo, hi = (None, None) if rng is None else rng
+            try:
+                sets = partition(list(cfg['sets']), cfg['apexes'], lo, hi)
+            except ValueError as err:
+                raise ValueError(f'variable {name!r}: {err}') from None
+        elif 'mf' in cfg:
+            if rng is None:
+                raise ValueError(f"variable {name!r}: 'mf' sets need a 'range'")
+            sets = {str(k): [float(v) for v in p] for k, p in cfg['mf'].items()}
+        else:
+            raise ValueError(f"variable {name!r}: needs 'sets' + 'apexes' or 'range' + 'mf'")
+        for set_name, p in sets.items():
+            bad = (len(p) not in (2, 3, 4) or not np.all(np.isfinite(p))
+                   or (len(p) == 2 and p[1] <= 0) or (len(p) > 2 and np.any(np.diff(p) < 0)))
+            if bad:
+                raise ValueError(f'variable {name!r}: set {set_name!r} needs [mean, sigma>0], '
+                                 f'[a<=b<=c] or [a<=b<=c<=d], got {list(p)}')
+        first = next(iter(sets.values()))
+        lo, hi = (first[0], list(sets.values())[-1][-1]) if rng is None else rng
+        return cls(name, float(lo), float(hi), {k: tuple(v) for k, v in sets.items()})
+
+
+@dataclass(frozen=True)
+class Rule:
+    """A parsed rule: antecedent (input index, set index) pairs, consequent set index, weight."""
+    antecedent: tuple[tuple[int, int], ...]
+    consequent: int
+    weight: float
+
+
+def parse_rule(text: str, inputs: Sequence[Variable], output: Variable, number: int = 0) -> Rule:
+    """Parse 'IF a IS A [AND b IS B]... THEN out IS U [WITH w]'; ValueError names the fault."""
+    where = f'rule {number} {text!r}'
+    m = _RULE.match(str(text))
+    if m is None:
+        raise ValueError(f"{where}: expected 'IF <input> IS <set> [AND ...] THEN <output> IS <set> [WITH <weight>]'")
+    names = [v.name for v in inputs]
+    ante = []
+    for clause in _AND.split(m['ante']):
+        c = _CLAUSE.match(clause)
+        if c is None:
+            raise ValueError(f"{where}: cannot read {clause.strip()!r}, expected '<input> IS <set>'")
+        var, set_name = c[1], c[2]
+        if var not in names:
+            raise ValueError(f'{where}: unknown input variable {var!r} (inputs: {", ".join(names)})')
+        k = names.index(var)
+        if set_name not in inputs[k].sets:
+            raise ValueError(f'{where}: unknown set {set_name!r} of {var!r} '
+                             f'(sets: {", ".join(inputs[k].sets)})')
+        if any(k == j for j, _ in ante):
+            raise ValueError(f'{where}: input {var!r} appears twice')
+        ante.append((k, list(inputs[k].sets).index(set_name)))
+    c = _CLAUSE.match(m['out'])
+    if c is None:
+        raise ValueError(f"{where}: cannot read consequent {m['out']!r}, expected '<output> IS <set>'")
+    if c[1] != output.name:
+        raise ValueError(f'{where}: unknown output variable {c[1]!r} (output: {output.name})')
+    if c[2] not in output.sets:
+        raise ValueError(f'{where}: unknown set {c[2]!r} of {output.name!r} '
+                         f'(sets: {", ".join(output.sets)})')
+    weight = 1.0
+    if m['weight'] is not None:
+        try:
+            weight = float(m['weight'])
+        except ValueError:
+            weight = float('nan')
+        if not 0.0 <= weight <= 1.0:
+            raise ValueError(f"{where}: weight must be a number in [0, 1], got {m['weight']!r}")
+    return Rule(tuple(ante), list(output.sets).index(c[2]), weight)
+
+
+def _choice(cfg: Mapping, key: str, options: tuple[str, ...], default: str) -> str:
+    value = str(cfg.get(key, default)).lower()
+    if value not in options:
+        raise ValueError(f"{key!r} must be one of {'|'.join(options)}, got {cfg.get(key)!r}")
+    return value
+
+
+class FuzzySystem:
+    """One Mamdani system (several inputs, one output) built from a config dict."""
+
+    def __init__(self, inputs: list[Variable], output: Variable, rules: list[Rule],
+                 and_op: str = 'min', implication: str = 'min', aggregation: str = 'max',
+                 defuzzification: str = 'centroid', resolution: int = 201, default: float = 0.0):
+        self.inputs, self.output, self.rules = inputs, output, rules
+        self.and_op, self.implication, self.aggregation = and_op, implication, aggregation
+        self.defuzzification, self.resolution, self.default = defuzzification, resolution, default
+        self.universe = self._grid()
+        self._bank: FuzzyBank | None = None
+
+    @classmethod
+    def from_config(cls, cfg: Mapping) -> FuzzySystem:
+        """Validate and build; every error is a one-line ValueError naming the culprit."""
+        unknown = set(cfg) - SYSTEM_KEYS
+        if unknown:
+            raise ValueError(f'fuzzy system: unknown key(s) {sorted(unknown)}')
+        for key in ('inputs', 'output', 'rules'):
+            if not cfg.get(key):
+                raise ValueError(f'fuzzy system: missing or empty {key!r}')
+        if not isinstance(cfg['output'], Mapping) or len(cfg['output']) != 1:
+            raise ValueError("fuzzy system: 'output' must map exactly one name to a variable")
+        inputs = [Variable.from_config(str(n), v) for n, v in cfg['inputs'].items()]
+        (out_name, out_cfg), = cfg['output'].items()
+        output = Variable.from_config(str(out_name), out_cfg)
+        if isinstance(cfg['rules'], str):
+            raise ValueError("fuzzy system: 'rules' must be a list of rule strings")
+        rules = [parse_rule(t, inputs, output, k) for k, t in enumerate(cfg['rules'])]
+        resolution = int(cfg.get('resolution', 201))
+        if resolution < 3:
+            raise ValueError(f"'resolution' must be at least 3, got {resolution}")
+        default = float(cfg.get('default', 0.0))
+        if not output.lo <= default <= output.hi:
+            raise ValueError(f"'default' {default} lies outside the output range [{output.lo}, {output.hi}]")
+        return cls(inputs, output, rules,
+                   _choice(cfg, 'and', AND_OPS, 'min'),
+                   _choice(cfg, 'implication', IMPLICATIONS, 'min'),
+                   _choice(cfg, 'aggregation', AGGREGATIONS, 'max'),
+                   _choice(cfg, 'defuzzification', DEFUZZIFIERS, 'centroid'),
+                   resolution, default)
+
+    def _grid(self) -> np.ndarray:
+        """Output universe: `resolution` even points plus every breakpoint and centre of the
+        output sets, so each set is exactly piecewise linear between grid points."""
+        lo, hi = self.output.lo, self.output.hi
+        grid = np.linspace(lo, hi, self.resolution)
+        tol = 1e-9 * (hi - lo)
+        extra = []
+        for p in self.output.sets.values():
+            for v in (p[:1] if len(p) == 2 else p):
+                k = int(np.abs(grid - v).argmin())
+                if abs(grid[k] - v) <= tol:
+                    grid[k] = v
+                elif lo < v < hi:
+                    extra.append(v)
+        return np.union1d(grid, extra)
+
+    def evaluate(self, x: Sequence[float]) -> tuple[float, bool]:
+        """Crisp output for one input vector (in `inputs` order) and whether it is valid."""
+        if self._bank is None:
+            self._bank = FuzzyBank([self])
+        y, ok = self._bank.evaluate(np.asarray(x, dtype=float)[None, :])
+        return float(y[0]), bool(ok[0])
+
+
+class FuzzyBank:
+    """Several systems with the same operators, evaluated in one vectorised call.
+
+    Row b of the (B, V) input goes to system b (V = most inputs of any system; extra
+    columns are ignored). Systems are padded to common sizes at load time: padded
+    rules never fire, padded antecedents are neutral, padded output sets are empty,
+    shorter output grids repeat their last point. A bank of one system repeated P
+    times evaluates P input vectors at once. A bank reuses its work buffers, so one
+    bank must not be evaluated from two threads at once.
+    """
+
+    def __init__(self, systems: Sequence[FuzzySystem]):
+        s0 = systems[0]
+        ops = (s0.and_op, s0.implication, s0.aggregation, s0.defuzzification)
+        for s in systems:
+            if (s.and_op, s.implication, s.aggregation, s.defuzzification) != ops:
+                raise ValueError('FuzzyBank: systems must share and/implication/aggregation/'
+                                 f'defuzzification, got {ops} and '
+                                 f'{(s.and_op, s.implication, s.aggregation, s.defuzzification)}')
+        self.and_op, self.implication, self.aggregation, self.defuzzification = ops
+        B = len(systems)
+        V = max(len(s.inputs) for s in systems)
+        S = max(sum(len(v.sets) for v in s.inputs) for s in systems)
+        R = max(len(s.rules) for s in systems)
+        K = max(len(r.antecedent) for s in systems for r in s.rules)
+        T = max(len(s.output.sets) for s in systems)
+        N = max(len(s.universe) for s in systems)
+        self.n_inputs = V
+        self.default = np.array([s.default for s in systems])
+
+        # Inputs: clip range per (system, input); each input set reads x.ravel()[set_input]
+        # and is a trapezoid (see _edges) or a Gaussian exp(-((x - mean) / sigma)^2 / 2).
+        self._lo, self._hi = np.zeros((B, V)), np.zeros((B, V))
+        self._set_input = np.zeros((B, S), dtype=np.intp)
+        trap = np.zeros((4, B, S))
+        self._is_gauss = np.zeros((B, S), dtype=bool)
+        self._mean, self._inv_sigma = np.zeros((B, S)), np.ones((B, S))
+        # Rules: K arrays (B, R) of indices into the memberships buffer (B * S + 2,) whose
+        # entry B * S is 1 (absent antecedent) and entry B * S + 1 is 0 (padded rule).
+        ante = np.empty((K, B, R), dtype=np.intp)
+        self._weight = np.zeros((B, R))
+        consequent = np.full((B, R), -1)
+        # Output: grid and sets (a, b, c, d), or Gaussian as (sigma, mean, mean, mean).
+        self._x = np.empty((B, N))
+        out = np.zeros((B, T, 4))
+        out_gauss = np.zeros((B, T), dtype=bool)
+        for bi, s in enumerate(systems):
+            base = bi * S
+            self._set_input[bi] = bi * V
+            col, set_col = 0, []
+            for i, v in enumerate(s.inputs):
+                self._lo[bi, i], self._hi[bi, i] = v.lo, v.hi
+                set_col.append(col)
+                for p in v.sets.values():
+                    self._set_input[bi, col] = bi * V + i
+                    if len(p) == 2:
+                        self._is_gauss[bi, col] = True
+                        self._mean[bi, col], self._inv_sigma[bi, col] = p[0], 1.0 / p[1]
+                    else:
+                        trap[:, bi, col] = _as_trapezoid(p)
+                    col += 1
+            trap[:, bi, col:] = v.lo
+            ante[:, bi] = B * S
+            ante[:, bi, len(s.rules):] = B * S + 1
+            for r, rule in enumerate(s.rules):
+                for k, (i, j) in enumerate(rule.antecedent):
+                    ante[k, bi, r] = base + set_col[i] + j
+                self._weight[bi, r] = rule.weight
+                consequent[bi, r] = rule.consequent
+            grid = s.universe
+            self._x[bi, :len(grid)], self._x[bi, len(grid):] = grid, grid[-1]
+            out[bi] = s.output.lo
+            for t, p in enumerate(s.output.sets.values()):
+                out_gauss[bi, t] = len(p) == 2
+                out[bi, t] = (p[1], p[0], p[0], p[0]) if len(p) == 2 else _as_trapezoid(p)
+        self._ante = list(ante)
+        width = (self._hi - self._lo).ravel()[self._set_input]
+        self._a, self._rise, self._d, self._fall = _edges(*trap, width)
+        self._any_gauss = bool(self._is_gauss.any())
+        self._weighted = bool((self._weight[self._weight > 0] != 1.0).any())
+        self._memberships = np.zeros(B * S + 2)
+        self._memberships[B * S] = 1.0
+        self._fire = np.zeros(B * R + 1)           # last entry stays 0
+        self._fire_br = self._fire[:-1].reshape(B, R)
+
+        # Units: what gets clipped/scaled and aggregated. Under sum aggregation with min
+        # implication every rule is its own unit; otherwise one unit per output set, its
+        # level reduced over its rules by reduceat over groups [0-entry, rules...].
+        self._per_rule = self.aggregation == 'sum' and self.implication == 'min'
+        if self._per_rule:
+            out = np.take_along_axis(out, np.maximum(consequent, 0)[:, :, None], axis=1)
+            out_gauss = np.take_along_axis(out_gauss, np.maximum(consequent, 0), axis=1)
+        else:
+            perm, starts = [], []
+            for bi in range(B):
+                for t in range(T):
+                    starts.append(len(perm))
+                    perm += [B * R] + [bi * R + r for r in np.flatnonzero(consequent[bi] == t)]
+            self._perm, self._starts = np.array(perm), np.array(starts)
+            self._level_reduce = np.maximum.reduceat if self.aggregation == 'max' else np.add.reduceat
+        U = out.shape[1]
+        mu = np.stack([[membership(self._x[bi], (p[1], p[0]) if g else p)
+                        for p, g in zip(out[bi], out_gauss[bi])] for bi in range(B)])
+        # On the grid only the units with non-zero membership matter: at most Q per point.
+        # (Q, B, N) unit index into level.ravel() and membership (0 where padded).
+        Q = int((mu > 0).sum(axis=1).max())
+        rank = np.argsort(mu <= 0, axis=1, kind='stable')[:, :Q]        # non-zero units first
+        self._grid_unit = (np.arange(B)[:, None, None] * U + rank).transpose(1, 0, 2).copy()
+        self._grid_mu = np.take_along_axis(mu, rank, axis=1).transpose(1, 0, 2).copy()
+        a, b, c, d = np.moveaxis(out, 2, 0)
+        self._centre = np.where(out_gauss, b, 0.5 * (b + c))
+        # Clip points of every unit at level L, rising then falling side, (B, 2U):
+        # p = a + L (b - a) and p = d - L (d - c), or mean -/+ sigma sqrt(-2 ln L).
+        self._unit2 = (np.arange(B)[:, None] * U + np.tile(np.arange(U), 2)).ravel()
+        self._p_base = np.concatenate([a, d], axis=1)
+        self._p_span = np.concatenate([b - a, c - d], axis=1)
+        self._gauss2 = np.tile(out_gauss, 2) if out_gauss.any() else None
+        self._g_mean, self._g_sigma = np.tile(b, 2), np.concatenate([-a, a], axis=1)
+        self._check_range = self._gauss2 is not None or bool(
+            ((a < self._x[:, :1]) | (d > self._x[:, -1:])).any())
+        self._olo, self._ohi = self._x[:, :1].copy(), self._x[:, -1:].copy()
+        # Every unit at every clip point, flattened to (B * U * 2U,): which point, which
+        # unit level, and the unit's shape (trapezoid edges as for the inputs, or Gaussian).
+        bb, uu, kk = np.meshgrid(np.arange(B), np.arange(U), np.arange(2 * U), indexing='ij')
+        self._pair_point = (bb * 2 * U + kk).ravel()
+        self._pair_level = (bb * U + uu).ravel()
+        edges = _edges(a, b, c, d, self._x[:, -1:] - self._x[:, :1])
+        self._pa, self._prise, self._pd, self._pfall = (e[bb, uu].ravel() for e in edges)
+        self._pgauss = out_gauss[bb, uu].ravel()
+        self._pmean = b[bb, uu].ravel()
+        self._pinv = 1.0 / np.where(out_gauss, a, 1.0)[bb, uu].ravel()
+        self._pair_shape = (B, U, 2 * U)
+        M = N + 2 * U if self.implication == 'min' else N   # grid + clip points
+        self._xa, self._fa = np.empty((B, M)), np.empty((B, M))
+        self._xa[:, :N] = self._x
+        self._row = np.arange(B)[:, None] * M
+        self._row_start = np.arange(B) * M
+        self._piece_in_row = np.ones(B * M - 1)
+        self._piece_in_row[M - 1::M] = 0.0
+
+    def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Crisp outputs (B,) for inputs (B, V), and a validity mask (finite inputs, a rule fired)."""
+        x = np.asarray(x, dtype=float)
+        B = len(x)
+        if np.isfinite(np.add.reduce(x, axis=None)):
+            ok = np.ones(B, dtype=bool)
+        else:
+            finite = np.isfinite(x)
+            ok = finite.all(axis=1)
+            x = np.where(finite, x, 0.0)
+        xs = np.minimum(np.maximum(x, self._lo), self._hi).ravel()[self._set_input]
+        mu = self._memberships[:-2].reshape(B, -1)
+        np.minimum((xs - self._a) * self._rise, (self._d - xs) * self._fall, out=mu)
+        if self._any_gauss:
+            mu[...] = np.where(self._is_gauss, np.exp(-0.5 * ((xs - self._mean) * self._inv_sigma) ** 2), mu)
+        np.minimum(np.maximum(mu, 0.0, out=mu), 1.0, out=mu)
+        flat, fire = self._memberships, self._fire_br
+        combine = np.minimum if self.and_op == 'min' else np.multiply
+        if len(self._ante) == 1:
+            fire[...] = flat[self._ante[0]]
+        else:
+            combine(flat[self._ante[0]], flat[self._ante[1]], out=fire)
+            for idx in self._ante[2:]:
+                combine(fire, flat[idx], out=fire)
+        if self._weighted:
+            fire *= self._weight
+        if self._per_rule:
+            level = fire
+        else:
+            level = self._level_reduce(self._fire[self._perm], self._starts).reshape(B, -1)
+        if self.defuzzification == 'height':
+            den = np.add.reduce(level, axis=1)
+            ok &= den > 0
+            y = np.vecdot(level, self._centre) / np.where(ok, den, 1.0)
+            return np.where(ok, y, self.default), ok
+        xa, fa = self._aggregate(level)
+        if self.defuzzification == 'centroid':
+            return self._centroid(xa.ravel(), fa.ravel(), ok)
+        h = xa[:, 1:] - xa[:, :-1]
+        f0, f1 = fa[:, :-1], fa[:, 1:]
+        if self.defuzzification == 'mom':
+            return self._mean_of_maxima(xa, fa, h, f0, f1, ok)
+        return self._bisector(xa, f0, f1, 0.5 * h * (f0 + f1), ok)
+
+    def _centroid(self, x: np.ndarray, f: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Exact centroid of the piecewise-linear set, all rows at once on the flat arrays:
+        per piece, area h (f0 + f1) / 2 and moment h ((x0 + x1)(f0 + f1) + x0 f0 + x1 f1) / 6;
+        the pieces joining one row to the next get h = 0."""
+        h = x[1:] - x[:-1]
+        h *= self._piece_in_row
+        f01 = f[1:] + f[:-1]
+        xf = x * f
+        moment = x[1:] + x[:-1]
+        moment *= f01
+        moment += xf[1:]
+        moment += xf[:-1]
+        moment *= h
+        h *= f01
+        total = np.add.reduceat(h, self._row_start)
+        ok &= total > 0
+        y = np.add.reduceat(moment, self._row_start) / (3.0 * np.where(ok, total, 1.0))
+        return np.where(ok, y, self.default), ok
+
+    def _aggregate(self, level: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Aggregated output set as sorted points (B, M) and memberships (B, M)."""
+        reduce = np.maximum.reduce if self.aggregation == 'max' else np.add.reduce
+        lq = level.ravel()[self._grid_unit]
+        if self.implication == 'product':
+            return self._x, reduce(np.multiply(lq, self._grid_mu, out=lq), axis=0)
+        N = self._x.shape[1]
+        reduce(np.minimum(lq, self._grid_mu, out=lq), axis=0, out=self._fa[:, :N])
+        # Where each unit reaches its level on its rising and falling side; the
+        # aggregated set is evaluated exactly there and merged into the grid.
+        lev2 = level.ravel()[self._unit2].reshape(len(level), -1)
+        p = self._xa[:, N:]
+        np.add(self._p_base, lev2 * self._p_span, out=p)
+        own = lev2
+        if self._check_range:
+            if self._gauss2 is not None:
+                with np.errstate(divide='ignore'):
+                    spread = self._g_sigma * np.sqrt(-2.0 * np.log(lev2))
+                p[...] = np.where(self._gauss2, self._g_mean + spread, p)
+            own = np.where((lev2 > 0) & (p >= self._olo) & (p <= self._ohi), lev2, 0.0)
+            np.clip(p, self._olo, self._ohi, out=p)
+        pp = p.ravel()[self._pair_point]
+        m = np.minimum((pp - self._pa) * self._prise, (self._pd - pp) * self._pfall)
+        if self._gauss2 is not None:
+            m = np.where(self._pgauss, np.exp(-0.5 * ((pp - self._pmean) * self._pinv) ** 2), m)
+        np.minimum(np.maximum(m, 0.0, out=m), level.ravel()[self._pair_level], out=m)
+        fp = self._fa[:, N:]
+        reduce(m.reshape(self._pair_shape), axis=1, out=fp)
+        if self.aggregation == 'max':   # a unit is exactly at its level at its own points
+            np.maximum(fp, own, out=fp)
+        order = self._xa.argsort(axis=1, kind='stable')
+        order += self._row
+        return self._xa.ravel()[order].reshape(order.shape), self._fa.ravel()[order].reshape(order.shape)
+
+    def _mean_of_maxima(self, xa, fa, h, f0, f1, ok):
+        """Mean of the set where membership is maximal: length-weighted over flat tops,
+        or the mean of the distinct points at the maximum when there is no flat top."""
+        top = fa.max(axis=1)[:, None]
+        flat = (f0 == top) & (f1 == top)
+        length = (h * flat).sum(axis=1)
+        mid = (h * flat * (xa[:, :-1] + xa[:, 1:])).sum(axis=1) * 0.5
+        at = fa == top
+        at[:, 1:] &= h != 0
+        points = (xa * at).sum(axis=1) / at.sum(axis=1)
+        ok &= top[:, 0] > 0
+        y = np.where(length > 0, mid / np.where(length > 0, length, 1.0), points)
+        return np.where(ok, y, self.default), ok
+
+    def _bisector(self, xa, f0, f1, area, ok):
+        """Point splitting the area of the piecewise-linear set into two equal halves."""
+        cum = np.cumsum(area, axis=1)
+        total = cum[:, -1]
+        ok &= total > 0
+        half = 0.5 * total[:, None]
+        idx = np.minimum((cum < half).sum(axis=1, keepdims=True), area.shape[1] - 1)
+        sub = half[:, 0] - np.take_along_axis(cum - area, idx, axis=1)[:, 0]
+        x1 = np.take_along_axis(xa[:, :-1], idx, axis=1)[:, 0]
+        x2 = np.take_along_axis(xa[:, 1:], idx, axis=1)[:, 0]
+        y1 = np.take_along_axis(f0, idx, axis=1)[:, 0]
+        y2 = np.take_along_axis(f1, idx, axis=1)[:, 0]
+        # Root u of y1*u + m*u^2/2 = sub, in a form that stays accurate as m -> 0.
+        m = (y2 - y1) / np.where(x2 > x1, x2 - x1, 1.0)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            y = x1 + 2.0 * sub / (y1 + np.sqrt(np.maximum(y1 * y1 + 2.0 * m * sub, 0.0)))
+        ok &= np.isfinite(y)
+        return np.where(ok, y, self.default), ok
