@@ -1,0 +1,452 @@
+"""mavlink_relay_node as a process (console script + config/mavlink_relay.yaml + -p overrides)
+against the simulated ArduCopter running in this process, over loopback UDP and TCP.
+
+Ground truth is the simulator's NED state. Expected motions are worked out here by hand
+from the commanded ENU/FLU velocity (never through uav_vs.autopilot.frames): ENU
+(east, north, up) is NED (north, east, down) = (y, x, -z); FLU (forward, left, up) at
+NED heading psi moves the vehicle along forward = (cos psi, sin psi) and
+right = (-sin psi, cos psi). For the simulator's first-order velocity lag, the distance
+flown by a velocity held for T seconds, once stopped, is exactly v * T.
+"""
+import math
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, TwistStamped
+from nav_msgs.msg import Odometry
+from std_msgs.msg import Header
+from std_srvs.srv import SetBool, Trigger
+
+from conftest import REPO, wait_for
+from uav_vs import graph
+from uav_vs.autopilot.link import load_signing_key, mavlink, open_connection
+from uav_vs.graph import executable
+from uav_vs.ros.convert import (msg_to_odometry, ns_to_stamp, odometry_to_msg, pose_to_msg,
+                                twist_to_msg)
+from uav_vs.sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
+
+CONFIG = REPO / 'config' / 'mavlink_relay.yaml'
+NODE = '/mavlink_relay_node'
+
+
+def vehicle_and_connection(transport: str, **cfg) -> tuple[MavlinkVehicle, str]:
+    """A simulated copter on a free loopback port and the relay's connection string for it."""
+    server = {'tcp': 'tcpin:127.0.0.1:0', 'udp': 'udpin:127.0.0.1:0'}[transport]
+    config = VehicleConfig(connection=server, **{'ready_delay': 0.5, **cfg})
+    vehicle = MavlinkVehicle(config).start()
+    port = vehicle.address[1]
+    return vehicle, {'tcp': f'tcp:127.0.0.1:{port}', 'udp': f'udpout:127.0.0.1:{port}'}[transport]
+
+
+def start_relay(processes, connection: str, *overrides: str, ns: str = '', label: str = 'relay'):
+    args = ['--params-file', str(CONFIG), '-p', f'connection:={connection}',
+            '-p', 'diagnostics_period:=0.2', '-p', 'takeoff_height:=1.0']
+    for kv in overrides:
+        args += ['-p', kv]
+    if ns:
+        args += ['-r', f'__ns:={ns}']
+    return processes('mavlink_relay_node', args, label=label)
+
+
+class Probe:
+    """The test side of one relay: cmd_vel, odometry, diagnostics, services."""
+
+    def __init__(self, node, ns: str = ''):
+        self.node, self.name = node, f'{ns}{NODE}'
+        self.diags: dict[str, dict] = {}
+        self.odom: list[Odometry] = []
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 50)
+        node.create_subscription(Odometry, f'{ns}/autopilot/odom', self.odom.append, 10)
+        self.cmd = node.create_publisher(TwistStamped, f'{ns}/cmd_vel', 10)
+        self.clients = {name: node.create_client(kind, f'{ns}/{name}') for name, kind in (
+            ('arm', SetBool), ('takeoff', Trigger), ('land', Trigger), ('set_guided', Trigger),
+            ('install_signing_key', Trigger))}
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            self.diags[status.name] = {kv.key: kv.value for kv in status.values}
+
+    def diag(self) -> dict:
+        return self.diags.get(self.name, {})
+
+    def wait_diag(self, timeout: float = 20.0, **expected: str) -> dict:
+        ok = wait_for(lambda: all(self.diag().get(k) == v for k, v in expected.items()), timeout)
+        assert ok, f'diagnostics never showed {expected}: {self.diag()}'
+        return self.diag()
+
+    def call(self, name: str, data: bool | None = None, timeout: float = 20.0):
+        client = self.clients[name]
+        assert client.wait_for_service(timeout_sec=20.0), f'no {name} service'
+        request = client.srv_type.Request() if data is None else SetBool.Request(data=data)
+        future = client.call_async(request)
+        assert wait_for(future.done, timeout), f'{name} service did not answer'
+        return future.result()
+
+    def send(self, frame: str, linear, yaw_rate: float = 0.0) -> None:
+        self.cmd.publish(twist_to_msg(linear, [0.0, 0.0, yaw_rate], Header(frame_id=frame)))
+
+    def fly(self, frame: str, linear, yaw_rate: float = 0.0, duration: float = 1.2,
+            rate: float = 20.0) -> None:
+        """Hold one command for `duration`, then command zero."""
+        end = time.monotonic() + duration
+        while time.monotonic() < end:
+            self.send(frame, linear, yaw_rate)
+            time.sleep(1.0 / rate)
+        self.send(frame, [0.0, 0.0, 0.0])
+
+
+def settle(vehicle: MavlinkVehicle, timeout: float = 6.0) -> None:
+    assert wait_for(lambda: np.linalg.norm(vehicle.truth().velocity) < 0.02
+                    and abs(vehicle.truth().yaw_rate) < 0.01, timeout), 'the vehicle never stopped'
+
+
+def take_off(probe: Probe, vehicle: MavlinkVehicle) -> None:
+    probe.wait_diag(link='connected')
+    for name, data in (('set_guided', None), ('arm', True), ('takeoff', None)):
+        response = probe.call(name, data)
+        assert response.success, response.message
+    truth = vehicle.truth()
+    assert truth.armed and truth.mode == 'GUIDED' and 0.95 < -truth.position[2] < 1.05
+    settle(vehicle)
+
+
+@pytest.mark.parametrize('transport', ['udp', 'tcp'])
+def test_flight_in_world_and_body_frames_odometry_and_landing(ros_node, processes, transport):
+    vehicle, connection = vehicle_and_connection(transport, land_speed=1.0)
+    try:
+        # a long command timeout: only the relay's zero setpoint on shutdown stops it early
+        relay = start_relay(processes, connection, 'allow_arming:=true', 'command_timeout:=2.5')
+        probe = Probe(ros_node)
+        assert wait_for(lambda: probe.cmd.get_subscription_count() > 0, 20)
+        take_off(probe, vehicle)
+
+        # world ENU (0.6 east, 0.8 south, 0.3 up) m/s for 1.2 s: NED (-0.96, +0.72, -0.36) m
+        p0 = vehicle.truth().position
+        probe.fly('world', [0.6, -0.8, 0.3])
+        settle(vehicle)
+        assert np.allclose(vehicle.truth().position - p0, [-0.96, 0.72, -0.36], atol=0.1)
+
+        # the autopilot's estimate, as odometry: ENU position = (NED y, NED x, -NED z),
+        # ENU yaw = pi/2 - NED yaw
+        n_odom = len(probe.odom)
+        assert wait_for(lambda: len(probe.odom) > n_odom + 2, 5)
+        p, q, v, w = msg_to_odometry(probe.odom[-1])
+        truth = vehicle.truth()
+        n, e, d = truth.position
+        assert np.allclose(p, [e, n, -d], atol=0.03)
+        last = probe.odom[-1]
+        assert (last.header.frame_id, last.child_frame_id) == ('world', 'base_link')
+        yaw_enu = math.atan2(2 * (q[3] * q[2] + q[0] * q[1]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
+        assert abs(math.remainder(yaw_enu - (math.pi / 2 - truth.yaw), 2 * math.pi)) < 0.01
+        assert np.linalg.norm(v) < 0.05 and np.linalg.norm(w) < 0.05
+
+        # +0.6 rad/s about z-up for 1.2 s, in base_link: a left turn, NED yaw falls by 0.72 rad
+        yaw0 = vehicle.truth().yaw
+        probe.fly('base_link', [0.0, 0.0, 0.0], yaw_rate=0.6)
+        settle(vehicle)
+        psi = vehicle.truth().yaw
+        assert math.isclose(math.remainder(psi - yaw0, 2 * math.pi), -0.72, abs_tol=0.07)
+
+        # base_link FLU (0.8 forward, 0.6 left) m/s for 1.5 s at NED heading psi
+        forward = np.array([math.cos(psi), math.sin(psi)])
+        right = np.array([-math.sin(psi), math.cos(psi)])
+        p0 = vehicle.truth().position
+        probe.fly('base_link', [0.8, 0.6, 0.0], duration=1.5)
+        # the odometry's twist is in base_link (REP-105): compare it with the true velocity
+        # near the end of the command, projected by hand on the body axes
+        cruising = msg_to_odometry(probe.odom[-1])[2]
+        vn, ve, _ = vehicle.truth().velocity
+        flu = [vn * forward[0] + ve * forward[1], -(vn * right[0] + ve * right[1])]
+        assert np.allclose(cruising[:2], flu, atol=0.08), (cruising, flu)
+        assert np.allclose(cruising[:2], [0.8, 0.6], atol=0.15)
+        settle(vehicle)
+        moved = vehicle.truth().position - p0
+        assert np.allclose(moved[:2], 1.5 * (0.8 * forward - 0.6 * right), atol=0.1)
+        assert abs(moved[2]) < 0.03
+        assert abs(math.remainder(vehicle.truth().yaw - psi, 2 * math.pi)) < 0.02  # no nose swing
+
+        # the relay stopped mid-command (0.5 m/s north): it exits cleanly after one zero
+        # setpoint; without it the copter would fly on for GUID_TIMEOUT, 1.5 m
+        for _ in range(10):
+            probe.send('world', [0.0, 0.5, 0.0])
+            time.sleep(0.05)
+        p0 = vehicle.truth().position
+        assert graph.stop([relay]) == [0]
+        settle(vehicle)
+        assert (vehicle.truth().position - p0)[0] < 0.4
+
+        # a new relay process picks the flying copter up and lands it
+        start_relay(processes, connection, label='relay2')
+        probe.wait_diag(link='connected', reconnects='0', cmd_vel='0')
+        xy = vehicle.truth().position[:2]
+        response = probe.call('land')
+        assert response.success, response.message
+        assert wait_for(lambda: not vehicle.truth().armed, 15), 'no touchdown'
+        truth = vehicle.truth()
+        assert truth.mode == 'LAND' and not truth.flying and truth.position[2] == 0.0
+        assert np.allclose(truth.position[:2], xy, atol=0.05)
+        assert probe.wait_diag(armed='False')['malformed'] == '0'
+    finally:
+        vehicle.stop()
+
+
+def test_stale_input_hovers_and_link_loss_reconnects_without_replay(ros_node, processes):
+    vehicle, connection = vehicle_and_connection('tcp')
+    try:
+        start_relay(processes, connection, 'allow_arming:=true', 'command_timeout:=0.3',
+                    'link_timeout:=2.0')
+        probe = Probe(ros_node)
+        assert wait_for(lambda: probe.cmd.get_subscription_count() > 0, 20)
+        take_off(probe, vehicle)
+
+        # 1 m/s north for 0.5 s, then the input stops: the 0.3 s watchdog streams zero,
+        # about 0.8 m flown; the copter's own GUID_TIMEOUT (3 s) would carry it 3.5 m
+        p0 = vehicle.truth().position
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end:
+            probe.send('world', [0.0, 1.0, 0.0])
+            time.sleep(0.05)
+        probe.wait_diag(command='hover')
+        settle(vehicle)
+        north = (vehicle.truth().position - p0)[0]
+        assert 0.6 < north < 1.3, north
+
+        # link cut while commands flow: detected, commands refused, not queued
+        def stream(seconds):
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                probe.send('world', [0.5, 0.0, 0.0])   # east
+                time.sleep(0.05)
+        stream(0.5)
+        vehicle.cut_link()
+        refused_before = int(probe.diag()['refused'])
+        stream(2.0)
+        diag = probe.wait_diag(link='lost', command='idle')
+        stream(0.5)
+        assert int(probe.wait_diag(link='lost')['refused']) > refused_before
+        settle(vehicle)                   # its own GUID_TIMEOUT stopped it
+        restored = time.monotonic()
+        vehicle.restore_link()
+        diag = probe.wait_diag(link='connected', reconnects='1')
+        assert diag['command'] == 'idle'
+        time.sleep(1.0)
+        assert vehicle.targets(since=restored) == []   # nothing from before the loss
+        assert np.linalg.norm(vehicle.truth().velocity) < 0.01
+        fresh = time.monotonic()
+        probe.send('world', [0.0, 0.5, 0.0])   # north
+        assert wait_for(lambda: vehicle.targets(since=fresh), 5)
+        assert vehicle.targets(since=fresh)[0].velocity == (0.5, 0.0, 0.0)  # NED north
+    finally:
+        vehicle.stop()
+
+
+def test_refused_arming_carries_the_reason_and_malformed_cmd_vel_is_skipped(ros_node, processes):
+    not_ready, conn1 = vehicle_and_connection('udp', ready_delay=60.0)
+    ready, conn2 = vehicle_and_connection('udp')
+    try:
+        start_relay(processes, conn1, 'allow_arming:=true', ns='/a', label='a')
+        start_relay(processes, conn2, ns='/b', label='b')    # allow_arming false (the default)
+        a, b = Probe(ros_node, '/a'), Probe(ros_node, '/b')
+        a.wait_diag(link='connected')
+        response = a.call('arm', True)
+        assert not response.success
+        assert 'PreArm: Need Position Estimate' in response.message      # the autopilot's reason
+        assert 'MAV_RESULT_FAILED' in response.message
+        response = a.call('set_guided')
+        assert not response.success and 'GUIDED requires position' in response.message
+        assert not not_ready.truth().armed
+
+        b.wait_diag(link='connected', prearm_ok='True')
+        assert b.call('set_guided').success and ready.truth().mode == 'GUIDED'
+        response = b.call('arm', True)
+        assert not response.success and 'allow_arming' in response.message
+        assert not ready.truth().armed
+
+        # malformed cmd_vel: counted, skipped, the node goes on
+        assert wait_for(lambda: b.cmd.get_subscription_count() > 0, 20)
+        t0 = time.monotonic()
+        for k, (frame, v) in enumerate((('world', [math.nan, 0.0, 0.0]), ('map', [1.0, 0.0, 0.0]),
+                                        ('base_link', [0.0, math.inf, 0.0]))):
+            b.send(frame, v)
+            b.wait_diag(malformed=str(k + 1))   # one at a time: the relay keeps only the newest
+        assert ready.targets(since=t0) == []
+        b.send('world', [0.0, 0.5, 0.0])   # a good one after them: north (ignored on the ground)
+        assert wait_for(lambda: ready.targets(since=t0), 5)
+        assert ready.targets(since=t0)[0].velocity == (0.5, 0.0, 0.0)
+        log = processes.log('b')
+        assert "frame_id 'map'" in log and 'not finite' in log
+    finally:
+        not_ready.stop()
+        ready.stop()
+
+
+class BareAutopilot:
+    """A bare ArduPilot-like UDP endpoint: heartbeats, and a record of what it receives."""
+
+    def __init__(self):
+        self.conn = open_connection('udpin:127.0.0.1:0', source_system=1, source_component=1)
+        self.port = self.conn.port.getsockname()[1]
+        self.received: list = []
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self):
+        next_hb = 0.0
+        while not self.stop.is_set():
+            if time.monotonic() >= next_hb and self.conn.clients:
+                next_hb = time.monotonic() + 0.2
+                self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR,
+                                             mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                             mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4, 4)
+            msg = self.conn.recv_match(blocking=True, timeout=0.05)
+            if msg is not None:
+                self.received.append(msg)
+
+    def close(self):
+        self.stop.set()
+        self.thread.join(timeout=2.0)
+        self.conn.close()
+
+
+def test_vision_pose_is_forwarded_in_ned(ros_node, processes):
+    autopilot = BareAutopilot()
+    try:
+        start_relay(processes, f'udpout:127.0.0.1:{autopilot.port}',
+                    'vision_pose_topic:=ground/pose', 'vision.position_std:=0.2')
+        probe = Probe(ros_node)
+        pub = ros_node.create_publisher(PoseStamped, '/ground/pose', 10)
+        probe.wait_diag(link='connected')
+        assert wait_for(lambda: pub.get_subscription_count() > 0, 20)
+        s = math.sqrt(0.5)   # nose north: ENU yaw +90 deg, NED yaw 0
+        good = pose_to_msg([1.0, 2.0, 3.0], [0.0, 0.0, s, s],
+                           Header(stamp=ns_to_stamp(1_700_000_000_250_000_000), frame_id='world'))
+        bad = pose_to_msg([1.0, 2.0, 3.0], [0.0, 0.0, s, s], Header(frame_id='map'))
+
+        def vision():
+            return [m for m in autopilot.received if m.get_type() == 'VISION_POSITION_ESTIMATE']
+        end = time.monotonic() + 10
+        while not vision() and time.monotonic() < end:   # until the subscription has matched
+            pub.publish(good)
+            time.sleep(0.05)   # the relay keeps only the newest message (depth 1)
+            pub.publish(bad)
+            time.sleep(0.05)
+        time.sleep(0.3)
+        forwarded = vision()
+        assert forwarded
+        diag = probe.wait_diag(vision=str(len(forwarded)))
+        assert int(diag['malformed']) >= 1 and int(diag['cmd_vel']) == 0
+        for v in forwarded:   # ENU (east 1, north 2, up 3) is NED (north 2, east 1, down -3)
+            assert (v.x, v.y, v.z, v.usec) == (2.0, 1.0, -3.0, 1_700_000_000_250_000)
+            assert abs(v.yaw) < 1e-6 and abs(v.roll) < 1e-6 and abs(v.pitch) < 1e-6
+            assert math.isclose(v.covariance[0], 0.04, rel_tol=1e-6)   # (0.2 m)^2
+        assert "frame_id 'map'" in processes.log('relay')
+    finally:
+        autopilot.close()
+
+
+def _gcs_hears(port: int, seconds: float) -> tuple[list, list]:
+    """A GCS without the key sends DO_SET_MODE STABILIZE: (its ACKs, HEARTBEAT signed flags)."""
+    gcs = open_connection(f'udpout:127.0.0.1:{port}', source_system=254)
+    gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 0, 0, 0, 0, 0, 0)
+    end, acks, signed = time.monotonic() + seconds, [], []
+    while time.monotonic() < end:
+        msg = gcs.recv_match(blocking=True, timeout=0.1)
+        if msg is None:
+            continue
+        if msg.get_type() == 'HEARTBEAT':
+            signed.append(bool(msg.get_header().incompat_flags & mavlink.MAVLINK_IFLAG_SIGNED))
+        elif msg.get_type() == 'COMMAND_ACK' and msg.target_system == 254:
+            acks.append(msg)
+    gcs.close()
+    return acks, signed
+
+
+def test_signing_rejects_unsigned_traffic_both_ways_and_installs_the_key(ros_node, processes,
+                                                                          tmp_path):
+    key_file = tmp_path / 'signing.key'
+    key_file.write_text('correct horse battery staple\n')
+    key = load_signing_key(key_file)
+    signed, conn1 = vehicle_and_connection('udp', signing_key=key)
+    unsigned, conn2 = vehicle_and_connection('udp')
+    fresh, conn3 = vehicle_and_connection('udp')
+    try:
+        start_relay(processes, conn1, f'signing_key_file:={key_file}', ns='/a', label='a')
+        start_relay(processes, conn2, f'signing_key_file:={key_file}', ns='/b', label='b')
+        start_relay(processes, conn3, f'signing_key_file:={key_file}', 'signing_required:=false',
+                    ns='/c', label='c')
+        a, b, c = Probe(ros_node, '/a'), Probe(ros_node, '/b'), Probe(ros_node, '/c')
+
+        # both sides sign: commands and ACKs go through
+        a.wait_diag(link='connected', vehicle_signs='True', signing='True')
+        assert a.call('set_guided').success and signed.truth().mode == 'GUIDED'
+        acks, flags = _gcs_hears(signed.address[1], 1.5)
+        assert acks == [] and signed.truth().mode == 'GUIDED'   # unsigned command dropped
+        assert flags and all(flags)                              # and all it hears is signed
+
+        # a vehicle that does not sign is never accepted by a relay that requires signing
+        b.wait_diag(link='connecting')
+        assert wait_for(lambda: int(b.diag().get('rejected_unsigned', 0)) > 0, 10), b.diag()
+        assert b.diag()['link'] == 'connecting'
+
+        # the install_signing_key service puts the key on the autopilot
+        c.wait_diag(link='connected', vehicle_signs='False')
+        assert not fresh.truth().signing
+        response = c.call('install_signing_key')
+        assert response.success, response.message
+        assert fresh.truth().signing
+        c.wait_diag(vehicle_signs='True')
+        acks, _ = _gcs_hears(fresh.address[1], 1.2)
+        assert acks == [] and fresh.truth().mode == 'STABILIZE'
+        for label in 'abc':   # the key never reaches a log
+            log = processes.log(label)
+            assert key.hex() not in log and 'correct horse' not in log
+    finally:
+        for v in (signed, unsigned, fresh):
+            v.stop()
+
+
+@pytest.mark.parametrize('override, expected', [
+    ('limits.max_speed:=-1.0', 'limits.max_speed: expected a number in [0, 30], got -1.0'),
+    (None, 'connection: missing'),
+    ('geofence.min:=[0.0, 0.0]', 'geofence.min: expected 3 numbers'),
+    ('signing_key_file:=/nonexistent/key', 'signing_key_file: cannot read /nonexistent/key'),
+])
+def test_bad_parameter_stops_the_node_with_one_fatal_line(tmp_path, override, expected):
+    doc = yaml.safe_load(CONFIG.read_text())
+    params = doc['/**']['ros__parameters']
+    if override is None:
+        del params['connection']
+    config = tmp_path / 'relay.yaml'
+    config.write_text(yaml.safe_dump(doc))
+    argv = [executable('mavlink_relay_node'), '--ros-args', '--params-file', str(config)]
+    if override:
+        argv += ['-p', override]
+    run = subprocess.run(argv, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2, run.stderr
+    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
+    assert len(fatal) == 1 and expected in fatal[0], run.stdout + run.stderr
+
+
+def test_odometry_twist_is_expressed_in_the_child_frame():
+    """convert.odometry_to_msg: world velocity rotated into base_link (REP-105)."""
+    s = math.sqrt(0.5)
+    header = Header(frame_id='world')
+    # nose north (yaw +90 deg about z-up): moving north is moving forward
+    msg = odometry_to_msg([1.0, 2.0, 3.0], [0.0, 0.0, s, s], [0.0, 2.0, 0.5], [0.0, 0.0, 0.3],
+                          header, 'base_link')
+    p, q, v, w = msg_to_odometry(msg)
+    assert msg.child_frame_id == 'base_link' and msg.header.frame_id == 'world'
+    assert np.array_equal(p, [1.0, 2.0, 3.0]) and np.allclose(q, [0.0, 0.0, s, s])
+    assert np.allclose(v, [2.0, 0.0, 0.5]) and np.array_equal(w, [0.0, 0.0, 0.3])
+    # rolled +90 deg about forward (x): base_link's left axis points up, so climbing is
+    # moving to the body's left
+    msg = odometry_to_msg([0.0, 0.0, 0.0], [s, 0.0, 0.0, s], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0],
+                          header, 'base_link')
+    assert np.allclose(msg_to_odometry(msg)[2], [0.0, 1.0, 0.0])

@@ -1,0 +1,266 @@
+"""mavlink_relay_node: velocity commands to an ArduPilot/PX4 autopilot, its estimate back.
+
+The chapter's controllers (sections 5 and 6) command velocities; this node hands them
+to the autopilot through uav_vs.autopilot.session (MAVLink, pymavlink) and publishes
+what the autopilot estimates, the comparison of Fig. 6.
+
+Subscribes `cmd_vel` (geometry_msgs/TwistStamped): header.frame_id `world_frame`
+(ENU) or `body_frame` (FLU) selects the frame; linear x, y, z [m/s] and angular z
+[rad/s] are used. Another frame or a non-finite value is counted as malformed and
+skipped. Optionally subscribes `vision_pose_topic` (PoseStamped in `world_frame`) and
+forwards it to the autopilot's EKF as VISION_POSITION_ESTIMATE.
+Publishes `autopilot/odom` (nav_msgs/Odometry: pose in `world_frame`, twist in
+`body_frame`, REP-105) and link, mode, arming and command state on /diagnostics.
+Services (std_srvs): `arm` (SetBool: true arms, only with `allow_arming`; false
+disarms), `takeoff` (Trigger, to `takeoff_height`), `land`, `set_guided` (GUIDED on
+ArduPilot, OFFBOARD on PX4) and `install_signing_key` (Trigger).
+
+Threading: the services block for seconds (a takeoff waits for its height), so they
+run in their own mutually exclusive callback group on a MultiThreadedExecutor, one
+flight command at a time, while `cmd_vel`, the vision pose and the timers run in a
+second group on the other thread and are never held up. The session's own watchdog
+turns stale input into a hover whatever the executor does.
+"""
+import time
+
+from geometry_msgs.msg import PoseStamped, TwistStamped
+from nav_msgs.msg import Odometry
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.duration import Duration
+from rclpy.exceptions import NameValidationException
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Header
+from std_srvs.srv import SetBool, Trigger
+
+from uav_vs.autopilot.link import load_signing_key
+from uav_vs.autopilot.session import (AutopilotError, CommandState, LinkState, Limits, Session,
+                                      SessionConfig)
+from uav_vs.ros.convert import msg_to_pose, msg_to_twist, odometry_to_msg, stamp_to_ns
+from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, run
+from uav_vs.ros.params import Param, ParameterError, T, declare
+
+CONNECTION_PREFIXES = ('udp:', 'udpin:', 'udpout:', 'udpbcast:', 'tcp:', 'tcpin:', '/dev/', 'COM')
+RATES = {'rates.local_position': 'LOCAL_POSITION_NED', 'rates.attitude': 'ATTITUDE',
+         'rates.global_position': 'GLOBAL_POSITION_INT', 'rates.sys_status': 'SYS_STATUS'}
+
+PARAMS = [
+    Param('connection', T.STRING, description=(
+        'pymavlink connection string: tcp:HOST:PORT, udpin:HOST:PORT, udpout:HOST:PORT, '
+        'or a serial device (/dev/ttyACM0)')),
+    Param('baud', T.INTEGER, 115200, 'serial baud rate (serial devices only)', 1200, 4000000),
+    Param('source_system', T.INTEGER, 255, 'our MAVLink system id (255: a GCS)', 1, 255),
+    Param('source_component', T.INTEGER, 190, 'our component id (190: MISSIONPLANNER)', 0, 255),
+    Param('target_system', T.INTEGER, 0, "the autopilot's system id (0: first vehicle heard)",
+          0, 255),
+    Param('rates.local_position', T.DOUBLE, 20.0, 'LOCAL_POSITION_NED rate requested, Hz',
+          0.1, 200.0),
+    Param('rates.attitude', T.DOUBLE, 20.0, 'ATTITUDE rate requested, Hz', 0.1, 200.0),
+    Param('rates.global_position', T.DOUBLE, 5.0, 'GLOBAL_POSITION_INT rate requested, Hz',
+          0.1, 200.0),
+    Param('rates.sys_status', T.DOUBLE, 1.0, 'SYS_STATUS rate requested, Hz', 0.1, 50.0),
+    Param('stream_rate', T.DOUBLE, 10.0, 'setpoint re-send rate, Hz (PX4 needs > 2)', 2.5, 100.0),
+    Param('command_timeout', T.DOUBLE, 0.5, 'cmd_vel older than this -> zero velocity (hover), s',
+          0.05, 2.5),
+    Param('link_timeout', T.DOUBLE, 3.0, 'no HEARTBEAT (1 Hz) for this long -> link lost, '
+          'reconnect, s', 1.5, 60.0),
+    Param('ack_timeout', T.DOUBLE, 1.0, 'wait for each COMMAND_ACK, s', 0.1, 10.0),
+    Param('command_retries', T.INTEGER, 2, 'COMMAND_LONG re-sends without an ACK', 0, 10),
+    Param('limits.max_speed', T.DOUBLE, 2.0, 'horizontal speed limit, m/s', 0.0, 30.0),
+    Param('limits.max_climb', T.DOUBLE, 1.0, 'upward speed limit, m/s', 0.0, 10.0),
+    Param('limits.max_descent', T.DOUBLE, 0.7, 'downward speed limit, m/s', 0.0, 10.0),
+    Param('limits.max_yaw_rate', T.DOUBLE, 1.0, 'yaw rate limit, rad/s', 0.0, 6.0),
+    Param('geofence.min', T.DOUBLE_ARRAY, [], 'fence box lower corner [x, y, z] in world ENU, m '
+          '(empty: no fence)'),
+    Param('geofence.max', T.DOUBLE_ARRAY, [], 'fence box upper corner [x, y, z] in world ENU, m '
+          '(empty: no fence)'),
+    Param('allow_arming', T.BOOL, False, 'let the arm service arm the motors'),
+    Param('takeoff_height', T.DOUBLE, 2.0, 'takeoff service height above home, m', 0.2, 100.0),
+    Param('signing_key_file', T.STRING, '', 'file holding the MAVLink 2 signing key '
+          "('': no signing)"),
+    Param('signing_required', T.BOOL, True, 'with a key: drop unsigned incoming messages'),
+    Param('world_frame', T.STRING, 'world', 'ENU world frame: cmd_vel, vision pose, odom header'),
+    Param('body_frame', T.STRING, 'base_link', 'FLU body frame: cmd_vel, odom child frame'),
+    Param('odom_rate', T.DOUBLE, 20.0, 'autopilot/odom publishing rate, Hz', 0.5, 200.0),
+    Param('diagnostics_period', T.DOUBLE, 1.0, 'diagnostics period, s', 0.05, 60.0),
+    Param('vision_pose_topic', T.STRING, '', "PoseStamped forwarded as VISION_POSITION_ESTIMATE "
+          "('': off)"),
+    Param('vision.position_std', T.DOUBLE, 0.1, 'vision position standard deviation, m',
+          1e-4, 100.0),
+    Param('vision.angle_std', T.DOUBLE, 0.05, 'vision attitude standard deviation, rad',
+          1e-4, 3.2),
+]
+
+
+def session_config(p: dict) -> SessionConfig:
+    """SessionConfig from the declared parameters; ParameterError names a bad one."""
+    if not p['connection'].startswith(CONNECTION_PREFIXES):
+        raise ParameterError(f"connection: expected tcp:, tcpin:, udp:, udpin:, udpout:HOST:PORT "
+                             f"or a serial device, got {p['connection']!r}")
+    lo, hi = p['geofence.min'], p['geofence.max']
+    if len(lo) != len(hi) or len(lo) not in (0, 3):
+        raise ParameterError(f'geofence.min: expected 3 numbers with geofence.max (or both empty), '
+                             f'got {lo} and {hi}')
+    if lo and not all(a < b for a, b in zip(lo, hi)):
+        raise ParameterError(f'geofence.min: expected below geofence.max on every axis, '
+                             f'got {lo} and {hi}')
+    if p['signing_key_file']:
+        check_key_file(p['signing_key_file'])
+    limits = Limits(max_speed=p['limits.max_speed'], max_climb=p['limits.max_climb'],
+                    max_descent=p['limits.max_descent'], max_yaw_rate=p['limits.max_yaw_rate'],
+                    fence_min=tuple(lo) or None, fence_max=tuple(hi) or None)
+    return SessionConfig(
+        connection=p['connection'], baud=p['baud'], source_system=p['source_system'],
+        source_component=p['source_component'], target_system=p['target_system'],
+        rates={name: p[key] for key, name in RATES.items()}, stream_rate=p['stream_rate'],
+        command_timeout=p['command_timeout'], link_timeout=p['link_timeout'],
+        ack_timeout=p['ack_timeout'], command_retries=p['command_retries'],
+        allow_arming=p['allow_arming'], limits=limits,
+        signing_key_file=p['signing_key_file'] or None, signing_required=p['signing_required'])
+
+
+def check_key_file(path: str) -> None:
+    """ParameterError naming signing_key_file if no key can be read from it (key never shown)."""
+    try:
+        load_signing_key(path)
+    except OSError as err:
+        raise ParameterError(f'signing_key_file: cannot read {path}: {err.strerror}') from None
+    except ValueError as err:
+        raise ParameterError(f'signing_key_file: {err}') from None
+
+
+class MavlinkRelayNode(Node):
+    def __init__(self) -> None:
+        super().__init__('mavlink_relay_node')
+        p = declare(self, PARAMS)
+        config = session_config(p)
+        self.world, self.body = p['world_frame'], p['body_frame']
+        self.takeoff_height = p['takeoff_height']
+        self.vision_std = dict(pos_std=p['vision.position_std'], angle_std=p['vision.angle_std'])
+        self.counts = dict(cmd_vel=0, sent=0, refused=0, malformed=0, vision=0)
+        self.next_warning: dict[str, float] = {}
+
+        fast, slow = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
+        newest = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+        self.create_subscription(TwistStamped, 'cmd_vel', self.on_cmd_vel, newest,
+                                 callback_group=fast)
+        if p['vision_pose_topic']:
+            try:
+                self.create_subscription(PoseStamped, p['vision_pose_topic'], self.on_vision_pose,
+                                         newest, callback_group=fast)
+            except NameValidationException as err:
+                raise ParameterError(f'vision_pose_topic: {err}'.splitlines()[0]) from None
+        self.odom_pub = self.create_publisher(Odometry, 'autopilot/odom', 10)
+        self.diag = Diagnostics(self, hardware_id=p['connection'])
+        self.create_timer(1.0 / p['odom_rate'], self.publish_odom, callback_group=fast)
+        self.create_timer(p['diagnostics_period'], self.publish_diagnostics, callback_group=fast)
+
+        self.session = Session(config).start()
+        self.create_service(SetBool, 'arm', self.on_arm, callback_group=slow)
+        for name, call in (('takeoff', lambda: self.session.takeoff(self.takeoff_height)),
+                           ('land', self.session.land), ('set_guided', self.session.set_guided),
+                           ('install_signing_key', self.session.install_signing_key)):
+            self.create_service(Trigger, name, self.service(name, call), callback_group=slow)
+        self.get_logger().info(f"relaying to {p['connection']} (arming "
+                               f"{'allowed' if p['allow_arming'] else 'disabled'}, signing "
+                               f"{'on' if p['signing_key_file'] else 'off'})")
+
+    # ---------------------------------------------------------------- topics
+    def on_cmd_vel(self, msg: TwistStamped) -> None:
+        self.counts['cmd_vel'] += 1
+        frame = msg.header.frame_id
+        if frame not in (self.world, self.body):
+            return self.malformed('cmd_vel frame', f'cmd_vel: frame_id {frame!r} is neither '
+                                  f'{self.world!r} nor {self.body!r}')
+        linear, angular = msg_to_twist(msg)
+        try:
+            sent = self.session.send_velocity(linear, angular[2], body=frame == self.body)
+        except ValueError as err:
+            return self.malformed('cmd_vel value', f'cmd_vel: {err}')
+        self.counts['sent' if sent else 'refused'] += 1
+
+    def on_vision_pose(self, msg: PoseStamped) -> None:
+        if msg.header.frame_id != self.world:
+            return self.malformed('vision frame', f'vision pose: frame_id '
+                                  f'{msg.header.frame_id!r}, expected {self.world!r}')
+        position, orientation = msg_to_pose(msg)
+        stamp = stamp_to_ns(msg.header.stamp) * 1e-9
+        try:
+            if self.session.send_vision_pose(position, orientation, stamp, **self.vision_std):
+                self.counts['vision'] += 1
+        except ValueError as err:
+            self.malformed('vision value', f'vision pose: {err}')
+
+    def malformed(self, kind: str, why: str) -> None:
+        """Count a bad message; log it, at most every 2 s per kind (all are counted)."""
+        self.counts['malformed'] += 1
+        now = time.monotonic()
+        if now >= self.next_warning.get(kind, 0.0):
+            self.next_warning[kind] = now + 2.0
+            self.get_logger().warn(f'{why}; skipped')
+
+    def publish_odom(self) -> None:
+        tel = self.session.telemetry()
+        if tel.position is None or tel.orientation is None:
+            return
+        age = Duration(nanoseconds=int((time.monotonic() - tel.stamp) * 1e9))
+        header = Header(stamp=(self.get_clock().now() - age).to_msg(), frame_id=self.world)
+        zero = (0.0, 0.0, 0.0)
+        self.odom_pub.publish(odometry_to_msg(
+            tel.position, tel.orientation, zero if tel.velocity is None else tel.velocity,
+            zero if tel.angular_velocity is None else tel.angular_velocity, header, self.body))
+
+    def publish_diagnostics(self) -> None:
+        s = self.session.status()
+        if s.link is not LinkState.CONNECTED:
+            level, message = (ERROR if s.link is LinkState.LOST else WARN), f'link {s.link.value}'
+        else:
+            level = WARN if s.command is CommandState.HOVER else OK
+            armed = 'armed' if s.armed else 'disarmed'
+            message = f"{s.mode or '?'}, {armed}, command {s.command.value}"
+        self.diag.publish(level, message, {
+            'link': s.link.value, 'autopilot': s.autopilot, 'vehicle': s.vehicle_type,
+            'system_id': s.system_id, 'mode': s.mode, 'armed': s.armed, 'command': s.command.value,
+            'prearm_ok': s.prearm_ok, 'battery_voltage': s.battery_voltage,
+            'heartbeat_age': 'none' if s.heartbeat_age is None else f'{s.heartbeat_age:.2f}',
+            'reconnects': s.reconnects, 'signing': s.signing, 'vehicle_signs': s.vehicle_signs,
+            'rejected_unsigned': s.rejected, **self.counts,
+            'statustext': s.statustext[-1] if s.statustext else ''})
+
+    # ---------------------------------------------------------------- services
+    def on_arm(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        if request.data:
+            return self.trigger('arm', self.session.arm, response)
+        return self.trigger('disarm', self.session.disarm, response)
+
+    def service(self, name: str, call):
+        """A Trigger callback running `call`."""
+        return lambda request, response: self.trigger(name, call, response)
+
+    def trigger(self, name: str, call, response):
+        """Run a blocking session call; the autopilot's refusal goes into response.message."""
+        try:
+            call()
+        except (AutopilotError, ValueError) as err:
+            response.success, response.message = False, f'{name}: {err}'
+            self.get_logger().error(response.message)
+            return response
+        s = self.session.status()
+        response.success = True
+        response.message = f"{name}: done ({s.mode}, {'armed' if s.armed else 'disarmed'})"
+        self.get_logger().info(response.message)
+        return response
+
+    def destroy_node(self) -> None:
+        if self.session.status().command is CommandState.ACTIVE:
+            self.session.send_velocity((0.0, 0.0, 0.0))  # stop now, not after GUID_TIMEOUT
+        self.session.close()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> None:
+    run(MavlinkRelayNode, 'mavlink_relay_node', args, threads=2)
+
+
+if __name__ == '__main__':
+    main()
