@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PolygonStamped, PoseStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image
@@ -40,7 +40,8 @@ def _frames(config: Path, n: int) -> list[list[np.ndarray]]:
 
 
 def measure(config: Path, frames: list[list[np.ndarray]]) -> np.ndarray:
-    """Latencies (ms) of the poses of one run, in this process's Fast DDS set-up."""
+    """Latencies (ms) of one run, in this process's Fast DDS set-up: row 0 the poses',
+    row 1 the cameras' landmarks (the first hop), NaN-padded to equal length."""
     cams = [f'cam{k + 1}' for k in range(len(frames[0]))]
     log_dir = Path(tempfile.mkdtemp(prefix='uav_vs_latency_'))
     procs = ground_graph(config, cams, log_dir)
@@ -50,12 +51,17 @@ def measure(config: Path, frames: list[list[np.ndarray]]) -> np.ndarray:
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     latencies: list[float] = []
+    hops: list[float] = []
     clock = node.get_clock()
 
-    def on_pose(msg: PoseStamped) -> None:
-        latencies.append((clock.now().nanoseconds - stamp_to_ns(msg.header.stamp)) / 1e6)
+    def age_ms(msg) -> float:
+        return (clock.now().nanoseconds - stamp_to_ns(msg.header.stamp)) / 1e6
 
-    node.create_subscription(PoseStamped, 'ground/pose', on_pose, 100)
+    node.create_subscription(PoseStamped, 'ground/pose', lambda m: latencies.append(age_ms(m)),
+                             100)
+    for c in cams:
+        node.create_subscription(PolygonStamped, f'{c}/landmarks', lambda m: hops.append(age_ms(m)),
+                                 100)
     pubs = [node.create_publisher(Image, f'{c}/image_raw', qos_profile_sensor_data) for c in cams]
     msgs = [[bgr_to_image(img, Header(frame_id=f'{c}_optical')) for img, c in zip(fs, cams)]
             for fs in frames]
@@ -74,6 +80,7 @@ def measure(config: Path, frames: list[list[np.ndarray]]) -> np.ndarray:
                     pub.publish(msg)
                 if now - start < WARMUP_S:
                     latencies.clear()
+                    hops.clear()
                 k += 1
             executor.spin_once(timeout_sec=max(0.0, start + k / RATE_HZ - time.monotonic()))
         end = time.monotonic() + 0.5
@@ -84,7 +91,9 @@ def measure(config: Path, frames: list[list[np.ndarray]]) -> np.ndarray:
         node.destroy_node()
         rclpy.shutdown(context=ctx)
         graph.stop(procs)
-    return np.array(latencies)
+    out = np.full((2, max(len(latencies), len(hops))), np.nan)
+    out[0, :len(latencies)], out[1, :len(hops)] = latencies, hops
+    return out
 
 
 def _run(profile: str | None) -> np.ndarray:
@@ -100,10 +109,13 @@ def _run(profile: str | None) -> np.ndarray:
 
 def latency() -> None:
     shm = str(Path(__file__).resolve().parents[1] / 'config' / 'fastdds_shm.xml')
-    ours, builtin = _run(shm), _run(None)
+    (ours, hops), (builtin, _) = _run(shm), _run(None)
+    ours, hops, builtin = (a[np.isfinite(a)] for a in (ours, hops, builtin))
     expected = int((SECONDS - WARMUP_S) * RATE_HZ)
     report('ground', 'ground/latency', ours, reference='builtin transports', ref_ms=builtin,
-           poses=len(ours), expected_poses=expected, ref_poses=len(builtin))
+           poses=len(ours), expected_poses=expected, ref_poses=len(builtin),
+           landmarks_median_ms=round(float(np.median(hops)), 2),
+           landmarks_p95_ms=round(float(np.percentile(hops, 95)), 2))
 
 
 def main() -> None:

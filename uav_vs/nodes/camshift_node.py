@@ -5,8 +5,11 @@ Subscribes `image_raw` (sensor_msgs/Image) and `image_raw/compressed`.
 Publishes `landmarks` (geometry_msgs/PolygonStamped, the image's header: one point per
 landmark in `landmarks.names` order, x, y = raw pixel centroid, z = confidence 0..1,
 all NaN when the landmark is not found), `debug_image` (when `camshift.debug_image`)
-and /diagnostics (frames, malformed and stale images, landmarks found).
+and /diagnostics (frames, malformed and stale images, landmarks found, detection and
+publishing time of the last frame `process_ms`).
 """
+import time
+
 import numpy as np
 from geometry_msgs.msg import PolygonStamped
 from rclpy.node import Node
@@ -75,18 +78,20 @@ class CamshiftNode(Node):
                           if p['camshift.debug_image'] else None)
         self.input = ImageInput(self, 'image_raw', p['camshift.image_qos'], self.on_image, size,
                                 colour=True)
-        self.frames = 0
+        self.frames, self.process_ms = 0, float('nan')
         self.found = np.zeros(len(self.detector.models), int)
         self.diag = Diagnostics(self)
         self.create_timer(p['camshift.diagnostics_period'], self.publish_diagnostics)
 
     def on_image(self, bgr: np.ndarray, header: Header) -> None:
+        t0 = time.perf_counter()
         detections = self.detector.detect(bgr)
         xy, conf = centroids(detections)
         points = np.column_stack([xy, np.where(np.isnan(xy[:, 0]), np.nan, conf)])
         self.pub.publish(points_to_polygon(points, Header(stamp=header.stamp,
                                                           frame_id=header.frame_id
                                                           or self.frame_id)))
+        self.process_ms = (time.perf_counter() - t0) * 1e3
         self.frames += 1
         self.found += [d.found for d in detections]
         if self.debug_pub is not None and self.debug_pub.get_subscription_count():
@@ -101,7 +106,8 @@ class CamshiftNode(Node):
         else:
             level, message = OK, f'{sum(last)}/{len(last)} landmarks found'
         found = {f'found_{m.name}': int(n) for m, n in zip(self.detector.models, self.found)}
-        self.diag.publish(level, message, {'frames': self.frames, **self.input.counts, **found})
+        self.diag.publish(level, message, {'frames': self.frames, **self.input.counts, **found,
+                                           'process_ms': round(self.process_ms, 3)})
 
 
 def main(args: list[str] | None = None) -> None:
