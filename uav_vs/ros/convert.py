@@ -54,12 +54,7 @@ def image_to_bgr(msg: Image, expected_size: tuple[int, int] | None = None) -> np
 def compressed_to_bgr(msg: CompressedImage,
                       expected_size: tuple[int, int] | None = None) -> np.ndarray:
     """sensor_msgs/CompressedImage (jpeg, png) to a BGR uint8 array."""
-    img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR)
-    if img is None:
-        raise MessageError(f'cannot decode compressed image (format {msg.format!r}, '
-                           f'{len(msg.data)} bytes)')
-    _check_size(img.shape[1], img.shape[0], expected_size)
-    return img
+    return _decode(msg, expected_size, cv2.IMREAD_COLOR)
 
 
 def bgr_to_image(img: np.ndarray, header: Header) -> Image:
@@ -178,7 +173,11 @@ def image_to_gray(msg: Image, expected_size: tuple[int, int] | None = None) -> n
 def compressed_to_gray(msg: CompressedImage,
                        expected_size: tuple[int, int] | None = None) -> np.ndarray:
     """sensor_msgs/CompressedImage (jpeg, png) decoded straight to 8-bit grey."""
-    img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    return _decode(msg, expected_size, cv2.IMREAD_GRAYSCALE)
+
+
+def _decode(msg: CompressedImage, expected_size: tuple[int, int] | None, flags: int) -> np.ndarray:
+    img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), flags)
     if img is None:
         raise MessageError(f'cannot decode compressed image (format {msg.format!r}, '
                            f'{len(msg.data)} bytes)')

@@ -99,15 +99,15 @@ class Camera:
 
         width = _positive_int(get('width'), prefix + 'width')
         height = _positive_int(get('height'), prefix + 'height')
-        K = _numbers(get('K'), 9, prefix + 'K').reshape(3, 3)
+        K = finite_numbers(get('K'), 9, prefix + 'K').reshape(3, 3)
         if K[0, 0] <= 0 or K[1, 1] <= 0 or np.any(K[2] != (0, 0, 1)) or K[1, 0] != 0:
             raise CalibrationError(f'{prefix}K: expected [fx,s,cx, 0,fy,cy, 0,0,1] with fx, fy > 0')
-        D = _numbers(get('D'), 5, prefix + 'D')
-        R = _numbers(get('R'), 9, prefix + 'R').reshape(3, 3)
+        D = finite_numbers(get('D'), 5, prefix + 'D')
+        R = finite_numbers(get('R'), 9, prefix + 'R').reshape(3, 3)
         if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
             raise CalibrationError(f'{prefix}R: expected a rotation matrix '
                                    '(orthonormal, det +1), 9 numbers row-major')
-        t = _numbers(get('t'), 3, prefix + 't')
+        t = finite_numbers(get('t'), 3, prefix + 't')
         frame_id = str(params.get('frame_id') or f'{name}_optical')
         return cls(name, width, height, K, D, R, t, frame_id)
 
@@ -126,7 +126,8 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0,
     return R, -R @ np.asarray(eye, float)
 
 
-def _numbers(value: object, n: int, name: str) -> np.ndarray:
+def finite_numbers(value: object, n: int, name: str) -> np.ndarray:
+    """`value` as n finite floats; CalibrationError naming `name` otherwise."""
     try:
         arr = np.asarray(value, dtype=np.float64).ravel()
     except (TypeError, ValueError):

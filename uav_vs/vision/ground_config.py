@@ -22,7 +22,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import yaml
 
-from uav_vs.vision.camera import CalibrationError, Camera
+from uav_vs.vision.camera import CalibrationError, Camera, finite_numbers
 
 _RANGES = {'hue': 180, 'saturation': 255, 'value': 255}
 
@@ -99,13 +99,7 @@ def _floats(params: Mapping[str, object], key: str, n: int) -> np.ndarray:
     value = params.get(key)
     if value is None:
         raise CalibrationError(f'{key}: missing')
-    try:
-        arr = np.asarray(value, dtype=np.float64).ravel()
-    except (TypeError, ValueError):
-        raise CalibrationError(f'{key}: expected {n} numbers, got {value!r}') from None
-    if arr.size != n or not np.all(np.isfinite(arr)):
-        raise CalibrationError(f'{key}: expected {n} finite numbers, got {value!r}')
-    return arr
+    return finite_numbers(value, n, key)
 
 
 def _range(params: Mapping[str, object], key: str, top: int) -> list[int]:
