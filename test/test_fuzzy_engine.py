@@ -134,13 +134,17 @@ def test_partition_sums_to_one_with_dense_apexes_and_shoulders():
         assert (trapezoid(a, *p) if len(p) == 4 else triangle(a, *p)) == 1.0
 
 
-def test_non_finite_inputs_give_the_default_and_a_flag():
-    bank = FuzzyBank([FuzzySystem.from_config(pd_config(default=0.0))] * 5)
-    x = np.array([[np.nan, 0.1], [0.3, np.inf], [-np.inf, 0], [0.5, 0.2], [1e300, -1e300]])
-    y, ok = bank.evaluate(x)
+@pytest.mark.parametrize('specialise', [True, False])
+def test_non_finite_inputs_give_the_default_and_a_flag(specialise):
+    bank = FuzzyBank([FuzzySystem.from_config(pd_config(default=0.0))] * 6, specialise=specialise)
+    x = np.array([[np.nan, 0.1], [0.3, np.inf], [-np.inf, 0], [0.5, 0.2], [1e300, -1e300], [1e308, 1e308]])
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')              # no overflow or invalid-value warnings either
+        y, ok = bank.evaluate(x)
     assert np.isfinite(y).all()
-    assert ok.tolist() == [False, False, False, True, True]
+    assert ok.tolist() == [False, False, False, True, True, True]
     assert y[:3].tolist() == [0.0, 0.0, 0.0] and y[3] > 0
+    assert y[5] == pytest.approx(FuzzySystem.from_config(pd_config()).evaluate([1, 1])[0], abs=1e-12)
 
 
 @pytest.mark.parametrize('rule,named', [
@@ -166,3 +170,128 @@ def test_bad_rules_fail_with_one_line_naming_the_fault(rule, named):
 def test_bad_operator_names_fail(key, value):
     with pytest.raises(ValueError, match=f'{key}.*{value}'):
         FuzzySystem.from_config(pd_config(**{key: value}))
+
+
+def pid_config():
+    """Three inputs, 45 rules (error x rate x integral), the shape of the PID-like axes."""
+    e5, r3 = ['NB', 'NS', 'ZE', 'PS', 'PB'], ['N', 'ZE', 'P']
+    rules = [f'IF error IS {e} AND rate IS {r} AND integral IS {i} '
+             f'THEN command IS {E7[min(6, max(0, 3 + a + b + c))]}'
+             for a, e in zip(range(-2, 3), e5) for b, r in zip(range(-1, 2), r3)
+             for c, i in zip(range(-1, 2), r3)]
+    return {'inputs': {'error': {'sets': e5, 'apexes': [-1, -0.2, 0, 0.2, 1]},
+                       'rate': {'sets': r3, 'apexes': [-1, 0, 1]},
+                       'integral': {'sets': r3, 'apexes': [-1, 0, 1]}},
+            'output': {'command': {'sets': E7, 'apexes': [-1, -0.6, -0.3, 0, 0.3, 0.6, 1]}},
+            'rules': rules, 'resolution': 101}
+
+
+def shortcut_cases():
+    """(name, config, linear firing expected, closed form expected)."""
+    weighted = pd_config()
+    weighted['rules'][17] += ' WITH 0.6'
+    weighted['rules'][3] += ' WITH 0.3'
+    plateaus = pd_config(resolution=116)                # output step 0.02 over [-1.2, 1.1]
+    plateaus['output']['command']['range'] = [-1.2, 1.1]
+    plateaus['inputs']['error']['range'] = [-1.5, 1.5]
+    uneven = pd_config()                                # 21, 12, 18, 14, 16, 19 grid cells
+    uneven['output']['command']['apexes'] = [-1, -0.58, -0.34, 0.02, 0.3, 0.62, 1]
+    off_grid = pd_config()
+    off_grid['output']['command']['apexes'] = [-1, -0.55, -0.33, 0.01, 0.3, 0.6, 1]
+    sparse = pd_config()
+    sparse['rules'] = [r.split(' AND ')[0] + ' THEN' + r.split(' THEN')[1] for r in sparse['rules'][::5]] \
+        + sparse['rules'][1::4]
+    beyond = pd_config()
+    beyond['inputs']['error'] = {'range': [-1, 1], 'mf': {n: [c - 0.3, c, c + 0.3]
+                                                          for n, c in zip(E7, np.linspace(-0.9, 0.9, 7))}}
+    return [('pd', pd_config(), True, True), ('weighted', weighted, True, True),
+            ('product and', pd_config(**{'and': 'product'}), False, True),
+            ('shoulder plateaus', plateaus, True, True), ('uneven cells', uneven, True, True),
+            ('sparse, one-antecedent rules', sparse, True, True),
+            ('input sets across the range', beyond, False, True),
+            ('apexes off the grid', off_grid, True, False),
+            ('bisector', pd_config(defuzzification='bisector'), True, False),
+            ('height', pd_config(defuzzification='height'), True, False),
+            ('sum aggregation', pd_config(aggregation='sum'), True, False),
+            ('product implication', pd_config(implication='product'), True, False)]
+
+
+@pytest.mark.parametrize('name,cfg,linear,closed', shortcut_cases(), ids=[c[0] for c in shortcut_cases()])
+def test_shortcuts_give_the_general_result(name, cfg, linear, closed):
+    # A dense grid, random points, and every pair of input apexes and midpoints between
+    # them (exact ties between memberships and between levels).
+    special = [sorted({*a, *((p + q) / 2 for p, q in zip(a, a[1:])), -1.5, 1.5})
+               for a in ([-1, -0.5, -0.2, 0, 0.2, 0.5, 1], [-1, -0.35, 0, 0.35, 1])]
+    x = np.vstack([input_grid(31), np.random.default_rng(6).uniform(-1.3, 1.3, (400, 2)),
+                   [(a, b) for a in special[0] for b in special[1]]])
+    system = FuzzySystem.from_config(cfg)
+    fast = FuzzyBank([system] * len(x))
+    assert (fast.linear_firing, fast.closed_form) == (linear, closed)
+    general = FuzzyBank([system] * len(x), specialise=False)
+    assert not general.linear_firing and not general.closed_form
+    (y, ok), (y_ref, ok_ref) = fast.evaluate(x), general.evaluate(x)
+    assert (ok == ok_ref).all()
+    assert np.abs(y - y_ref).max() < 1e-12
+
+
+def test_shortcuts_in_a_bank_of_different_systems():
+    three = pd_config(resolution=51)
+    three['output']['command'] = {'sets': ['N', 'Z', 'P'], 'apexes': [-1, 0, 1]}
+    three['rules'] = [f'IF error IS {e} THEN command IS {"NZP"[min(2, i // 2)]}' for i, e in enumerate(E7)]
+    systems = [FuzzySystem.from_config(c) for c in (pid_config(), pd_config(), three)] * 300
+    x = np.random.default_rng(7).uniform(-1.3, 1.3, (len(systems), 3))
+    fast, general = FuzzyBank(systems), FuzzyBank(systems, specialise=False)
+    assert fast.linear_firing and fast.closed_form
+    (y, ok), (y_ref, ok_ref) = fast.evaluate(x), general.evaluate(x)
+    assert (ok == ok_ref).all() and np.abs(y - y_ref).max() < 1e-12
+
+
+def levels_config(apexes, resolution=101, output_range=None):
+    """Seven inputs in [0, 1], rule k: input k drives output set k, so an input vector
+    sets the seven output levels directly."""
+    out = {'sets': E7, 'apexes': apexes, **({'range': output_range} if output_range else {})}
+    return {'inputs': {f'in{k}': {'range': [0, 1], 'mf': {'HI': [0, 1, 1]}} for k in range(7)},
+            'output': {'command': out},
+            'rules': [f'IF in{k} IS HI THEN command IS {E7[k]}' for k in range(7)],
+            'resolution': resolution}
+
+
+@pytest.mark.parametrize('apexes,resolution,output_range', [
+    ([-1, -0.6, -0.3, 0, 0.3, 0.6, 1], 101, None),
+    ([-1, -0.58, -0.34, 0.02, 0.3, 0.62, 1], 101, None),       # uneven cells, odd and even
+    ([-1, -0.6, -0.3, 0, 0.3, 0.6, 1], 116, [-1.2, 1.1]),      # shoulder plateaus
+    ([-1, -0.9, -0.3, 0, 0.1, 0.6, 1], 21, None),              # one- and two-cell intervals
+])
+def test_closed_form_centroid_over_all_level_patterns(apexes, resolution, output_range):
+    # Random levels, levels from a small set (ties, 1/2, 0, 1, clip points on grid points,
+    # clip points sharing a cell with the kink) and sparse ones, against the general route
+    # everywhere and against scikit-fuzzy on a sample.
+    system = FuzzySystem.from_config(levels_config(apexes, resolution, output_range))
+    rng = np.random.default_rng(8)
+    values = np.array([0, 0.5, 1, 0.25, 0.75, 1 / 3, 2 / 3, 0.2, 0.8, 0.4, 0.6, 0.1, 0.9, 0.45, 0.55, 0.05])
+    levels = np.vstack([rng.uniform(0, 1, (500, 7)), rng.choice(values, (1000, 7)),
+                        np.where(rng.uniform(size=(500, 7)) < 0.6, 0, rng.choice(values, (500, 7))),
+                        rng.integers(0, 21, (500, 7)) / 20, np.zeros((1, 7))])
+    fast, general = FuzzyBank([system] * len(levels)), FuzzyBank([system] * len(levels), specialise=False)
+    assert fast.linear_firing and fast.closed_form
+    (y, ok), (y_ref, ok_ref) = fast.evaluate(levels), general.evaluate(levels)
+    assert (ok == ok_ref).all() and not ok[-1] and y[-1] == 0.0
+    assert np.abs(y - y_ref).max() < 1e-12
+    sim = to_skfuzzy(system)
+    sample = rng.choice(np.flatnonzero(ok), 30, replace=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', DeprecationWarning)
+        ref = np.array([skfuzzy_evaluate(sim, system, levels[k]) for k in sample])
+    assert np.abs(y[sample] - ref).max() < 1e-6
+
+
+def test_general_centroid_equals_skfuzzy_for_overlapping_trapezoids():
+    cfg = pd_config()
+    cfg['output']['command'] = {'range': [-1, 1], 'mf': {
+        'NB': [-1, -1, -0.8, -0.4], 'NM': [-0.9, -0.55, -0.25], 'NS': [-0.5, -0.3, -0.2, 0.05],
+        'ZE': [-0.25, 0, 0.25], 'PS': [-0.05, 0.2, 0.3, 0.5], 'PM': [0.25, 0.55, 0.9],
+        'PB': [0.4, 0.8, 1, 1]}}
+    cfg['rules'][17] += ' WITH 0.6'
+    system, y, ok, ref = engine_and_reference(cfg, input_grid(11))
+    assert not FuzzyBank([system]).closed_form
+    assert ok.all() and np.abs(y - ref).max() < 1e-6

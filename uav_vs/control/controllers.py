@@ -28,6 +28,7 @@ from uav_vs.control.fuzzy import FuzzyBank, FuzzySystem
 
 INPUTS = ('error', 'rate', 'integral')
 AXIS_KEYS = {'limit', 'rate_filter', 'integral_limit', 'rules', 'command', *INPUTS}
+TWO_PI = 2.0 * math.pi
 
 
 def config_from_params(params: Mapping[str, object], prefix: str = 'fuzzy') -> dict:
@@ -123,63 +124,70 @@ class AxisGroup:
     """
 
     def __init__(self, axes: list[_Axis], angular: list[bool]):
-        n = len(axes)
         self.axes = axes
         self.bank = FuzzyBank([a.system for a in axes])
-        self._gain = np.zeros((n, self.bank.n_inputs))
-        for i, a in enumerate(axes):
-            self._gain[i, :len(a.gains)] = a.gains
-        self._angular = list(angular)
-        self._has_i = [a.has_integral for a in axes]
+        # Per axis: wrap angles, rate filter time constant, integral limit (None: no
+        # integral input), gains of error, rate and integral.
+        self._axis = [(wrap, a.rate_filter, a.integral_limit if a.has_integral else None,
+                       *a.gains, *(0.0,) * (3 - len(a.gains))) for a, wrap in zip(axes, angular)]
+        self._with_integral = self.bank.n_inputs > 2
+        self._x = np.zeros((len(axes), self.bank.n_inputs))
+        self._x_flat = self._x.ravel()
         self._out_gain = np.array([a.out_gain for a in axes])
         self.limit = np.array([a.limit for a in axes])
-        self._tau = [a.rate_filter for a in axes]
-        self._i_limit = [a.integral_limit for a in axes]
-        self._inputs = np.zeros((n, self.bank.n_inputs))
-        self.valid = np.zeros(n, dtype=bool)
+        self._minus_limit = -self.limit
+        self.valid = np.zeros(len(axes), dtype=bool)
         self.reset()
 
     def reset(self) -> None:
         """Forget the previous error, the rate estimate and the integral."""
-        n = len(self.limit)
+        n = len(self.axes)
         self._prev = [math.nan] * n
         self._rate = [0.0] * n
         self._integral = [0.0] * n
 
     def step(self, error: np.ndarray, dt: float) -> np.ndarray:
-        """Commands (n,) for errors (n,) after dt seconds; always finite and within +-limit."""
+        """Commands (n,) for errors (n,) after dt seconds; always finite and within +-limit.
+
+        A handful of axes: the state update runs on plain floats, the fuzzy systems in
+        one bank call."""
         dt = float(dt)
         timed = math.isfinite(dt) and dt > 0
-        finite = []
-        x = self._inputs
-        for i, ei in enumerate(error):      # a handful of axes: plain floats beat numpy here
-            ei = float(ei)
-            ok = math.isfinite(ei)
-            if ok and self._angular[i]:
-                ei = math.remainder(ei, 2.0 * math.pi)
+        prev, rate, integral = self._prev, self._rate, self._integral
+        inputs: list[float] = []
+        finite: list[bool] = []
+        for i, e in enumerate(np.asarray(error, dtype=float).tolist()):
+            wrap, tau, i_limit, g_e, g_r, g_i = self._axis[i]
+            ok = math.isfinite(e)
             if not ok:
-                self._prev[i], self._rate[i], self._integral[i] = math.nan, 0.0, 0.0
-            elif timed:
-                de = ei - self._prev[i]
-                if self._angular[i]:
-                    de = math.remainder(de, 2.0 * math.pi) if math.isfinite(de) else de
-                if math.isfinite(de):
-                    self._rate[i] += dt / (self._tau[i] + dt) * (de / dt - self._rate[i])
-                    if not math.isfinite(self._rate[i]):
-                        self._rate[i] = 0.0
-                if self._has_i[i]:
-                    lim = self._i_limit[i]
-                    self._integral[i] = min(lim, max(-lim, self._integral[i] + ei * dt))
-            if ok:
-                self._prev[i] = ei
+                prev[i], rate[i], integral[i] = math.nan, 0.0, 0.0
+                e = 0.0                          # evaluated, then discarded below
+            else:
+                if wrap:
+                    e = math.remainder(e, TWO_PI)
+                if timed:
+                    de = e - prev[i]
+                    if wrap and math.isfinite(de):
+                        de = math.remainder(de, TWO_PI)
+                    if math.isfinite(de):
+                        r = rate[i] + dt / (tau + dt) * (de / dt - rate[i])
+                        rate[i] = r if math.isfinite(r) else 0.0
+                    if i_limit is not None:
+                        integral[i] = min(i_limit, max(-i_limit, integral[i] + e * dt))
+                prev[i] = e
             finite.append(ok)
-            x[i, 0] = ei if ok else math.nan
-            x[i, 1] = self._rate[i]
-            if x.shape[1] > 2:
-                x[i, 2] = self._integral[i]
-        y, ok = self.bank.evaluate(x * self._gain)
+            inputs += ((e * g_e, rate[i] * g_r, integral[i] * g_i) if self._with_integral
+                       else (e * g_e, rate[i] * g_r))
+        self._x_flat[:] = inputs
+        y, ok = self.bank.evaluate(self._x)
+        u = np.multiply(y, self._out_gain, out=y)
+        np.minimum(u, self.limit, out=u)
+        np.maximum(u, self._minus_limit, out=u)
+        if all(finite) and all(ok.tolist()):
+            self.valid = ok
+            return u
         self.valid = ok & np.array(finite)
-        return np.where(self.valid, np.clip(y * self._out_gain, -self.limit, self.limit), 0.0)
+        return np.where(self.valid, u, 0.0)
 
 
 class PoseController(AxisGroup):

@@ -41,9 +41,12 @@ Semantics (vectorised; everything shape-dependent is precomputed at load):
   mom is the mean of the flat top(s) at maximum membership (or of the points at the
   maximum when there is no flat top); height is the level-weighted mean of the set
   centres (apex, core middle or Gaussian mean).
+FuzzyBank computes the common cases by exact shortcuts (linear firing, closed-form
+centroid over an output partition); see there.
 """
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -298,6 +301,70 @@ class FuzzySystem:
         return float(y[0]), bool(ok[0])
 
 
+# Closed-form centroid over an output partition (FuzzyBank._partition_centroid): per interval
+# between neighbouring apexes the features [A, C, C, A, m, m, A^2, C^2, C^2, A^2, m^2, m^2,
+# A^3, C^3, D1, D2, D1 l1, D2 l2, D1 r1, D2 r2, D1 m, D2 m, 1] (repeats keep every step free
+# of broadcasting and reversed views); area and first moment (in t) are their dot products
+# with these weights. The constant feature adds the smallest positive double to the area (of
+# no consequence to any other area), so that where no rule fired the centroid is 0 / _TINY.
+_AREA = np.array([1, 1, 0, 0, -1, 0, -1 / 2, -1 / 2, 0, 0, 1, 0,
+                  0, 0, 1 / 2, 1 / 2, 0, 0, 0, 0, 0, 0, 0])
+_MOMENT = np.array([1 / 2, 1 / 2, 0, 0, -1 / 2, 0, -1 / 2, 0, 0, 0, 1 / 2, 0,
+                    1 / 6, -1 / 6, 0, 1 / 2, -1 / 6, 1 / 6, 1 / 6, -1 / 6, 1 / 2, -1 / 2, 0])
+_TINY = 5e-324
+_HUGE = 1e150        # inputs at least this large (or not finite) are sanitised before use
+
+
+def _rule_forms(system: FuzzySystem, n_forms: int) -> np.ndarray | None:
+    """Firing strengths under min AND as minima of linear forms of the inputs (section 6).
+
+    weight * min(memberships, clipped to [0, 1]) = max(0, min(weight, weight * each edge
+    of each antecedent set)), every edge being linear in its input; the max with 0 is
+    left to the caller. Inputs are clipped to their range, so an edge beyond a range end
+    is constant there and dropped. Returns coefficients (inputs + 1, n_forms, rules),
+    the last row the constant term, or None when a set is not of that kind (Gaussian,
+    vertical edge inside the range, an edge across a range end).
+    """
+    V = len(system.inputs)
+    coef = np.zeros((V + 1, n_forms, len(system.rules)))
+    for r, rule in enumerate(system.rules):
+        w = rule.weight
+        coef[V, :, r] = w
+        for k, (i, j) in enumerate(rule.antecedent):
+            var = system.inputs[i]
+            p = list(var.sets.values())[j]
+            if len(p) == 2:
+                return None
+            a, b, c, d = _as_trapezoid(p)
+            if b > var.lo:                      # rising edge (x - a) / (b - a)
+                if not var.lo <= a < b <= var.hi:
+                    return None
+                coef[i, 2 * k + 1, r], coef[V, 2 * k + 1, r] = w / (b - a), -w * a / (b - a)
+            if c < var.hi:                      # falling edge (d - x) / (d - c)
+                if not var.lo <= c < d <= var.hi:
+                    return None
+                coef[i, 2 * k + 2, r], coef[V, 2 * k + 2, r] = -w / (d - c), w * d / (d - c)
+    return coef
+
+
+def _output_partition(system: FuzzySystem) -> tuple[list[int], list[float]] | None:
+    """Output sets in order of position and their apexes when they form a 50 %-overlap
+    triangular partition of the output range (end sets may be shoulders) whose apexes lie
+    on the even grid (the universe has no extra points); otherwise None."""
+    out = system.output
+    if len(system.universe) != system.resolution or any(len(p) == 2 for p in out.sets.values()):
+        return None
+    shapes = [_as_trapezoid(p) for p in out.sets.values()]
+    order = sorted(range(len(shapes)), key=lambda t: shapes[t][1] + shapes[t][2])
+    sets = [shapes[t] for t in order]
+    apex = [sets[0][2]] + [p[1] for p in sets[1:]]
+    ok = (len(sets) >= 2 and sets[0][:2] == (out.lo, out.lo) and sets[-1][2:] == (out.hi, out.hi)
+          and all(p[1] == p[2] for p in sets[1:-1])
+          and all(p[3] == q and s[0] == a and a < q
+                  for p, s, a, q in zip(sets, sets[1:], apex, apex[1:])))
+    return (order, apex) if ok else None
+
+
 class FuzzyBank:
     """Several systems with the same operators, evaluated in one vectorised call.
 
@@ -307,9 +374,17 @@ class FuzzyBank:
     shorter output grids repeat their last point. A bank of one system repeated P
     times evaluates P input vectors at once. A bank reuses its work buffers, so one
     bank must not be evaluated from two threads at once.
+
+    Where they apply (and `specialise` is true) two stages are replaced by exact
+    shortcuts that give the same numbers as the general ones (the tests check it):
+    `linear_firing`, rule firing under min AND over triangular/trapezoidal input sets
+    as one matrix product and one minimum (`_rule_forms`); `closed_form`, min
+    implication + max aggregation + centroid over an output partition computed in
+    closed form (`_partition_centroid`) instead of merging and sorting the clip points
+    into the output grid. Both flags tell which apply.
     """
 
-    def __init__(self, systems: Sequence[FuzzySystem]):
+    def __init__(self, systems: Sequence[FuzzySystem], specialise: bool = True):
         s0 = systems[0]
         ops = (s0.and_op, s0.implication, s0.aggregation, s0.defuzzification)
         for s in systems:
@@ -320,36 +395,69 @@ class FuzzyBank:
         self.and_op, self.implication, self.aggregation, self.defuzzification = ops
         B = len(systems)
         V = max(len(s.inputs) for s in systems)
-        S = max(sum(len(v.sets) for v in s.inputs) for s in systems)
         R = max(len(s.rules) for s in systems)
-        K = max(len(r.antecedent) for s in systems for r in s.rules)
-        T = max(len(s.output.sets) for s in systems)
-        N = max(len(s.universe) for s in systems)
         self.n_inputs = V
         self.default = np.array([s.default for s in systems])
-
-        # Inputs: clip range per (system, input); each input set reads x.ravel()[set_input]
-        # and is a trapezoid (see _edges) or a Gaussian exp(-((x - mean) / sigma)^2 / 2).
+        self._nonzero_default = bool(self.default.any())
         self._lo, self._hi = np.zeros((B, V)), np.zeros((B, V))
+        for bi, s in enumerate(systems):
+            for i, v in enumerate(s.inputs):
+                self._lo[bi, i], self._hi[bi, i] = v.lo, v.hi
+        self._fire = np.zeros(B * R + 1)           # last entry stays 0
+        self._fire_br = self._fire[:-1].reshape(B, R)
+
+        n_forms = 1 + 2 * max(len(r.antecedent) for s in systems for r in s.rules)
+        # Mean of maxima hinges on exact ties between levels, which the forms' rounding
+        # need not reproduce, so it keeps the general fuzzification.
+        linear = specialise and self.and_op == 'min' and self.defuzzification != 'mom'
+        forms = [_rule_forms(s, n_forms) for s in systems] if linear else [None]
+        self.linear_firing = all(f is not None for f in forms)
+        if self.linear_firing:
+            self._init_linear_firing(forms, V, R, n_forms)
+        else:
+            self._init_memberships(systems, V, R)
+        closed_form = specialise and ops[1:] == ('min', 'max', 'centroid')
+        parts = [_output_partition(s) for s in systems] if closed_form else [None]
+        self.closed_form = all(p is not None for p in parts)
+        if self.closed_form:
+            self._init_partition(systems, parts, R)
+        else:
+            self._init_aggregation(systems, R)
+
+    def _init_linear_firing(self, forms: list[np.ndarray], V: int, R: int, n_forms: int) -> None:
+        """Inputs (B, 1, V + 1) with a trailing 1 times coefficients (B, V + 1, n_forms * R)
+        give the forms (B, n_forms, R); their minimum over axis 1 is the firing strength."""
+        B = len(forms)
+        self._x1 = np.ones((B, 1, V + 1))
+        self._x1_in = self._x1[:, 0, :V]
+        coef = np.zeros((B, V + 1, n_forms, R))
+        for bi, f in enumerate(forms):
+            coef[bi, :len(f) - 1, :, :f.shape[2]] = f[:-1]
+            coef[bi, V, :, :f.shape[2]] = f[-1]
+        self._form_coef = coef.reshape(B, V + 1, -1)
+        self._forms = np.empty((B, 1, n_forms * R))
+        self._forms_fr = self._forms.reshape(B, n_forms, R)
+        self._clip_fire = self.aggregation == 'sum'     # max aggregation reduces with a 0 entry
+
+    def _init_memberships(self, systems: Sequence[FuzzySystem], V: int, R: int) -> None:
+        """General fuzzification: each input set reads x.ravel()[set_input] and is a trapezoid
+        (see _edges) or a Gaussian exp(-((x - mean) / sigma)^2 / 2); rules combine K arrays
+        (B, R) of indices into the memberships buffer (B * S + 2,) whose entry B * S is 1
+        (absent antecedent) and entry B * S + 1 is 0 (padded rule)."""
+        B = len(systems)
+        S = max(sum(len(v.sets) for v in s.inputs) for s in systems)
+        K = max(len(r.antecedent) for s in systems for r in s.rules)
         self._set_input = np.zeros((B, S), dtype=np.intp)
         trap = np.zeros((4, B, S))
         self._is_gauss = np.zeros((B, S), dtype=bool)
         self._mean, self._inv_sigma = np.zeros((B, S)), np.ones((B, S))
-        # Rules: K arrays (B, R) of indices into the memberships buffer (B * S + 2,) whose
-        # entry B * S is 1 (absent antecedent) and entry B * S + 1 is 0 (padded rule).
         ante = np.empty((K, B, R), dtype=np.intp)
         self._weight = np.zeros((B, R))
-        consequent = np.full((B, R), -1)
-        # Output: grid and sets (a, b, c, d), or Gaussian as (sigma, mean, mean, mean).
-        self._x = np.empty((B, N))
-        out = np.zeros((B, T, 4))
-        out_gauss = np.zeros((B, T), dtype=bool)
         for bi, s in enumerate(systems):
             base = bi * S
             self._set_input[bi] = bi * V
             col, set_col = 0, []
             for i, v in enumerate(s.inputs):
-                self._lo[bi, i], self._hi[bi, i] = v.lo, v.hi
                 set_col.append(col)
                 for p in v.sets.values():
                     self._set_input[bi, col] = bi * V + i
@@ -366,13 +474,6 @@ class FuzzyBank:
                 for k, (i, j) in enumerate(rule.antecedent):
                     ante[k, bi, r] = base + set_col[i] + j
                 self._weight[bi, r] = rule.weight
-                consequent[bi, r] = rule.consequent
-            grid = s.universe
-            self._x[bi, :len(grid)], self._x[bi, len(grid):] = grid, grid[-1]
-            out[bi] = s.output.lo
-            for t, p in enumerate(s.output.sets.values()):
-                out_gauss[bi, t] = len(p) == 2
-                out[bi, t] = (p[1], p[0], p[0], p[0]) if len(p) == 2 else _as_trapezoid(p)
         self._ante = list(ante)
         width = (self._hi - self._lo).ravel()[self._set_input]
         self._a, self._rise, self._d, self._fall = _edges(*trap, width)
@@ -380,8 +481,73 @@ class FuzzyBank:
         self._weighted = bool((self._weight[self._weight > 0] != 1.0).any())
         self._memberships = np.zeros(B * S + 2)
         self._memberships[B * S] = 1.0
-        self._fire = np.zeros(B * R + 1)           # last entry stays 0
-        self._fire_br = self._fire[:-1].reshape(B, R)
+
+    def _init_partition(self, systems: Sequence[FuzzySystem], parts: list, R: int) -> None:
+        """Buffers and coefficients of `_partition_centroid`, all (..., J, B) with the row last
+        so that every step works on contiguous blocks. Interval u of row b lies between
+        apexes u and u + 1 (width w, left apex p, n grid cells); its area and moment are
+        w * area_t and w * p * area_t + w^2 * moment_t, plus the end plateaus of shoulders."""
+        B = len(systems)
+        J = max(len(apex) for _, apex in parts) - 1
+        members = [[[bi * R + r for r, rule in enumerate(s.rules) if rule.consequent == t] for t in order]
+                   for bi, (s, (order, _)) in enumerate(zip(systems, parts))]
+        depth = max(len(rs) for m in members for rs in m) + 1
+        level = np.full((depth, 4, J, B), B * R)            # B * R: the 0 after the firings
+        coef = np.zeros((2, len(_AREA), J, B))
+        self._cell = np.ones((2, J, B))                        # grid period in t
+        for bi, (s, (_, apex)) in enumerate(zip(systems, parts)):
+            p = np.array(apex)
+            w = np.diff(p)
+            cells = np.round(w * (s.resolution - 1) / (s.output.hi - s.output.lo))
+            for u in range(len(w)):
+                for row, side in enumerate((0, 1, 1, 0)):      # A, C, C, A
+                    rs = members[bi][u + side]
+                    level[:len(rs), row, u, bi] = rs
+            self._cell[:, :len(w), bi] = 1.0 / cells
+            coef[0, :, :len(w), bi] = _AREA[:, None] * w
+            coef[1, :, :len(w), bi] = _AREA[:, None] * (w * p[:-1]) + _MOMENT[:, None] * w ** 2
+            lo, hi = s.output.lo, s.output.hi
+            coef[:, 0, 0, bi] += (p[0] - lo, (p[0] ** 2 - lo ** 2) / 2)
+            coef[:, 1, len(w) - 1, bi] += (hi - p[-1], (hi ** 2 - p[-1] ** 2) / 2)
+            coef[0, -1, 0, bi] = _TINY
+        self._level_idx = level
+        self._coef = coef.reshape(2, -1, B)
+        self._phi = np.ones((len(_AREA), J, B))
+        phi = self._phi
+        self._levels, self._ac, self._ca, self._m = phi[0:4], phi[0:2], phi[2:4], phi[4:6]
+        self._lm, self._squares, self._ac2, self._cubes = phi[0:6], phi[6:12], phi[6:8], phi[12:14]
+        self._delta, self._delta_l = phi[14:16], phi[16:18]
+        self._delta_r, self._delta_m = phi[18:20], phi[20:22]
+        self._phi_flat = phi.reshape(-1, B)
+        self._half, self._one = np.full((2, J, B), 0.5), np.ones((2, J, B))
+        self._two = np.full((2, 2, J, B), 2.0)
+        self._one_minus_m, self._right_clip = np.empty((2, J, B)), np.empty((2, J, B))
+        self._clip_dist, self._grid_dist = np.empty((2, 2, J, B)), np.empty((2, 2, J, B))
+        self._near = np.empty((2, 2, J, B))
+        self._s, self._minus_s = self._clip_dist[1], self._clip_dist[0]
+        self._grid_l, self._grid_r = self._grid_dist
+        self._near_l, self._near_r = self._near
+
+    def _init_aggregation(self, systems: Sequence[FuzzySystem], R: int) -> None:
+        """General aggregation and defuzzification on the output grid plus clip points."""
+        B = len(systems)
+        T = max(len(s.output.sets) for s in systems)
+        N = max(len(s.universe) for s in systems)
+        consequent = np.full((B, R), -1)
+        for bi, s in enumerate(systems):
+            for r, rule in enumerate(s.rules):
+                consequent[bi, r] = rule.consequent
+        # Output: grid and sets (a, b, c, d), or Gaussian as (sigma, mean, mean, mean).
+        self._x = np.empty((B, N))
+        out = np.zeros((B, T, 4))
+        out_gauss = np.zeros((B, T), dtype=bool)
+        for bi, s in enumerate(systems):
+            grid = s.universe
+            self._x[bi, :len(grid)], self._x[bi, len(grid):] = grid, grid[-1]
+            out[bi] = s.output.lo
+            for t, p in enumerate(s.output.sets.values()):
+                out_gauss[bi, t] = len(p) == 2
+                out[bi, t] = (p[1], p[0], p[0], p[0]) if len(p) == 2 else _as_trapezoid(p)
 
         # Units: what gets clipped/scaled and aggregated. Under sum aggregation with min
         # implication every rule is its own unit; otherwise one unit per output set, its
@@ -441,15 +607,29 @@ class FuzzyBank:
     def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Crisp outputs (B,) for inputs (B, V), and a validity mask (finite inputs, a rule fired)."""
         x = np.asarray(x, dtype=float)
-        B = len(x)
-        if np.isfinite(np.add.reduce(x, axis=None)):
-            ok = np.ones(B, dtype=bool)
-        else:
+        bad = None
+        if not math.hypot(*x.ravel().tolist()) < _HUGE:
             finite = np.isfinite(x)
-            ok = finite.all(axis=1)
-            x = np.where(finite, x, 0.0)
+            bad = ~finite.all(axis=1)
+            x = np.minimum(np.maximum(np.where(finite, x, 0.0), self._lo), self._hi)
+        if self.linear_firing:
+            np.copyto(self._x1_in, x)
+            np.matmul(self._x1, self._form_coef, out=self._forms)
+            np.minimum.reduce(self._forms_fr, axis=1, out=self._fire_br)
+            if self._clip_fire:
+                np.maximum(self._fire_br, 0.0, out=self._fire_br)
+        else:
+            self._fire_memberships(x)
+        y, ok = self._partition_centroid() if self.closed_form else self._defuzzify()
+        if bad is not None:
+            ok &= ~bad
+            y[bad] = self.default[bad]
+        return y, ok
+
+    def _fire_memberships(self, x: np.ndarray) -> None:
+        """Firing strengths (into self._fire) from the memberships of every input set."""
         xs = np.minimum(np.maximum(x, self._lo), self._hi).ravel()[self._set_input]
-        mu = self._memberships[:-2].reshape(B, -1)
+        mu = self._memberships[:-2].reshape(len(x), -1)
         np.minimum((xs - self._a) * self._rise, (self._d - xs) * self._fall, out=mu)
         if self._any_gauss:
             mu[...] = np.where(self._is_gauss, np.exp(-0.5 * ((xs - self._mean) * self._inv_sigma) ** 2), mu)
@@ -464,8 +644,54 @@ class FuzzyBank:
                 combine(fire, flat[idx], out=fire)
         if self._weighted:
             fire *= self._weight
+
+    def _partition_centroid(self) -> tuple[np.ndarray, np.ndarray]:
+        """Exact centroid for min implication, max aggregation and an output partition
+        (section 6), without building the aggregated set.
+
+        Between apexes u and u + 1, in t = (x - apex_u) / width, only those two sets are
+        non-zero: F(t) = max(f1, f2), f1 = min(A, 1 - t), f2 = min(C, t), A and C their
+        levels. The reference set samples F at the grid (t = i / n) and at the clip points
+        1 - A and C and is linear in between. Such sampling is linear in F, f1 and f2 bend
+        only at clip points, and F = f1 + f2 - g with g = min(m, t, 1 - t), m = min(A, C, 1/2);
+        so the area is (A - A^2/2) + (C - C^2/2) - (m - m^2) plus, at each kink of g, the
+        triangle D / 2 = dl dr / 2 cut off by the chord between the nearest samples, dl to
+        the left and dr to the right (0 when the kink is a sample). Kink 1 is at m; kink 2,
+        at 1 - m, is handled mirrored to m (the grid is symmetric) with A and C swapped.
+        The grid lies m mod cell to the left and the rest of the cell to the right; clip
+        point C lies right of m; clip point 1 - A lies s = 1 - A - m away, s mod 2 to the
+        right and -s mod 2 to the left, >= 1 (never nearest) on its wrong side. First
+        moments follow likewise, each triangle's at its centroid m + (dr - dl) / 3.
+        """
+        np.maximum.reduce(self._fire[self._level_idx], axis=0, out=self._levels)
+        ac, m, near_l, near_r = self._ac, self._m, self._near_l, self._near_r
+        np.minimum(ac, self._ca, out=m)                          # m, once per kink
+        np.minimum(m, self._half, out=m)
+        np.multiply(self._lm, self._lm, out=self._squares)
+        np.multiply(self._ac2, ac, out=self._cubes)
+        np.subtract(self._one, m, out=self._one_minus_m)
+        np.subtract(self._one_minus_m, ac, out=self._s)         # s, with 1 - C for kink 2
+        np.negative(self._s, out=self._minus_s)
+        np.mod(self._clip_dist, self._two, out=self._clip_dist)  # [left, right] distances
+        np.mod(m, self._cell, out=self._grid_l)
+        np.subtract(self._cell, self._grid_l, out=self._grid_r)
+        np.minimum(self._clip_dist, self._grid_dist, out=self._near)
+        np.subtract(self._ca, m, out=self._right_clip)          # C (kink 1), A (kink 2): right of m
+        np.minimum(near_r, self._right_clip, out=near_r)
+        np.multiply(near_l, near_r, out=self._delta)
+        np.multiply(self._delta, near_l, out=self._delta_l)
+        np.multiply(self._delta, near_r, out=self._delta_r)
+        np.multiply(self._delta, m, out=self._delta_m)
+        area, moment = np.vecdot(self._phi_flat, self._coef, axis=-2)
+        y, ok = moment / area, area > _TINY
+        return (np.where(ok, y, self.default) if self._nonzero_default else y), ok
+
+    def _defuzzify(self) -> tuple[np.ndarray, np.ndarray]:
+        """Levels, aggregated output set and crisp value by the general route."""
+        B = len(self.default)
+        ok = np.ones(B, dtype=bool)
         if self._per_rule:
-            level = fire
+            level = self._fire_br
         else:
             level = self._level_reduce(self._fire[self._perm], self._starts).reshape(B, -1)
         if self.defuzzification == 'height':
