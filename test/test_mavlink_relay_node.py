@@ -245,6 +245,38 @@ def test_stale_input_hovers_and_link_loss_reconnects_without_replay(ros_node, pr
         vehicle.stop()
 
 
+def test_a_running_flight_service_holds_up_neither_cmd_vel_nor_the_next_service(ros_node,
+                                                                                processes):
+    vehicle, connection = vehicle_and_connection('udp', takeoff_speed=0.3)   # a slow climb
+    try:
+        start_relay(processes, connection, 'allow_arming:=true')
+        probe = Probe(ros_node)
+        assert wait_for(lambda: probe.cmd.get_subscription_count() > 0, 20)
+        probe.wait_diag(link='connected', prearm_ok='True')
+        assert probe.call('set_guided').success and probe.call('arm', True).success
+
+        takeoff = probe.clients['takeoff'].call_async(Trigger.Request())
+        land = probe.clients['land'].call_async(Trigger.Request())   # waits for the takeoff
+
+        # while the takeoff waits for its height, cmd_vel is still taken (and refused)
+        assert wait_for(lambda: probe.diag().get('command') == 'locked' or takeoff.done(), 20)
+
+        def refused() -> bool:
+            probe.send('world', [0.0, 0.5, 0.0])
+            return int(probe.diag().get('refused', 0)) > 0
+        assert wait_for(lambda: refused() or takeoff.done(), 20, period=0.05)
+        assert not takeoff.done() and probe.diag()['command'] == 'locked'
+
+        # one flight command at a time: the takeoff completes, then the landing
+        assert wait_for(land.done, 30), 'land service did not answer'
+        assert takeoff.done() and takeoff.result().success, takeoff.result().message
+        assert land.result().success, land.result().message
+        assert vehicle.truth().mode == 'LAND'
+        assert int(probe.wait_diag(command='locked')['sent']) == 0
+    finally:
+        vehicle.stop()
+
+
 def test_refused_arming_carries_the_reason_and_malformed_cmd_vel_is_skipped(ros_node, processes):
     not_ready, conn1 = vehicle_and_connection('udp', ready_delay=60.0)
     ready, conn2 = vehicle_and_connection('udp')
@@ -273,7 +305,7 @@ def test_refused_arming_carries_the_reason_and_malformed_cmd_vel_is_skipped(ros_
         for k, (frame, v) in enumerate((('world', [math.nan, 0.0, 0.0]), ('map', [1.0, 0.0, 0.0]),
                                         ('base_link', [0.0, math.inf, 0.0]))):
             b.send(frame, v)
-            b.wait_diag(malformed=str(k + 1))   # one at a time: the relay keeps only the newest
+            b.wait_diag(malformed=str(k + 1))
         assert ready.targets(since=t0) == []
         b.send('world', [0.0, 0.5, 0.0])   # a good one after them: north (ignored on the ground)
         assert wait_for(lambda: ready.targets(since=t0), 5)

@@ -140,14 +140,15 @@ class Status:
     statustext: tuple[str, ...]      # the autopilot's latest STATUSTEXT, newest last
 
 
-def limit_velocity(v: np.ndarray, yaw_rate: float, limits: Limits) -> tuple[np.ndarray, float]:
+def limit_velocity(v: tuple[float, float, float], yaw_rate: float,
+                   limits: Limits) -> tuple[tuple[float, float, float], float]:
     """Scale horizontal speed to max_speed (direction kept), clamp climb/descent and yaw rate."""
-    out = np.array(v, dtype=float)
-    speed = math.hypot(out[0], out[1])
+    x, y, z = v
+    speed = math.hypot(x, y)
     if speed > limits.max_speed:
-        out[:2] *= limits.max_speed / speed
-    out[2] = min(max(out[2], -limits.max_descent), limits.max_climb)
-    return out, min(max(yaw_rate, -limits.max_yaw_rate), limits.max_yaw_rate)
+        x, y = x * limits.max_speed / speed, y * limits.max_speed / speed
+    z = min(max(z, -limits.max_descent), limits.max_climb)
+    return (x, y, z), min(max(yaw_rate, -limits.max_yaw_rate), limits.max_yaw_rate)
 
 
 def fence_velocity(v_world: np.ndarray, position: np.ndarray | None, lo, hi) -> np.ndarray:
@@ -197,7 +198,7 @@ class Session:
         self._next_stream_check = 0.0
         self._next_heartbeat = 0.0
         self._command_state = CommandState.IDLE
-        self._setpoint = (np.zeros(3), 0.0, False)   # ENU/FLU velocity, yaw rate, body?
+        self._setpoint = ((0.0, 0.0, 0.0), 0.0, False)   # ENU/FLU velocity, yaw rate, body?
         self._last_command = 0.0
         self._next_setpoint = 0.0
         self._handlers = {
@@ -259,12 +260,12 @@ class Session:
         nothing, while the link is down or a takeoff/landing holds commands. Raises
         ValueError for a command that is not three finite numbers and a finite yaw rate.
         """
-        v = np.asarray(linear, dtype=float)
-        if v.shape != (3,):
-            raise ValueError(f'velocity command needs 3 components, got shape {v.shape}')
-        if not (np.isfinite(v).all() and math.isfinite(yaw_rate)):
-            raise ValueError(f'velocity command is not finite: {v.tolist()}, yaw rate {yaw_rate}')
-        v, yaw_rate = limit_velocity(v, float(yaw_rate), self.config.limits)
+        v, yaw_rate = tuple(map(float, linear)), float(yaw_rate)
+        if len(v) != 3:
+            raise ValueError(f'velocity command needs 3 components, got {len(v)}')
+        if not all(map(math.isfinite, (*v, yaw_rate))):
+            raise ValueError(f'velocity command is not finite: {list(v)}, yaw rate {yaw_rate}')
+        v, yaw_rate = limit_velocity(v, yaw_rate, self.config.limits)
         with self._cond:
             if self._link is not LinkState.CONNECTED or self._command_state is CommandState.LOCKED:
                 return False
@@ -459,7 +460,7 @@ class Session:
     def _send_setpoint(self, now: float) -> None:
         v, yaw_rate, body = self._setpoint
         if self._command_state is CommandState.HOVER:
-            v, yaw_rate = np.zeros(3), 0.0
+            v, yaw_rate = (0.0, 0.0, 0.0), 0.0
         limits = self.config.limits
         if limits.fence_min is not None and limits.fence_max is not None:
             tel = self._telemetry
@@ -554,7 +555,7 @@ class Session:
         if self._link is LinkState.CONNECTED:
             self._link = LinkState.LOST
         self._command_state = CommandState.IDLE
-        self._setpoint = (np.zeros(3), 0.0, False)
+        self._setpoint = ((0.0, 0.0, 0.0), 0.0, False)
         self._acks.clear()
         self._last_hb = None
         self._cond.notify_all()

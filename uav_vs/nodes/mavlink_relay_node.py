@@ -15,13 +15,17 @@ Services (std_srvs): `arm` (SetBool: true arms, only with `allow_arming`; false
 disarms), `takeoff` (Trigger, to `takeoff_height`), `land`, `set_guided` (GUIDED on
 ArduPilot, OFFBOARD on PX4) and `install_signing_key` (Trigger).
 
-Threading: the services block for seconds (a takeoff waits for its height), so they
-run in their own mutually exclusive callback group on a MultiThreadedExecutor, one
-flight command at a time, while `cmd_vel`, the vision pose and the timers run in a
-second group on the other thread and are never held up. The session's own watchdog
-turns stale input into a hover whatever the executor does.
+Threading: one executor thread runs `cmd_vel`, the vision pose and the timers; each
+command is sent to the autopilot from its callback, as soon as it is taken. The services
+block for seconds (a takeoff waits for its height), so each one runs on a worker thread
+that the executor awaits: their own mutually exclusive callback group keeps it to one
+flight command at a time, and the executor is never held up. `cmd_vel` keeps the last
+10 messages (best effort), so a short stall delays commands but loses none. The
+session's own watchdog turns stale input into a hover whatever the executor does.
 """
+import threading
 import time
+from typing import Callable
 
 from geometry_msgs.msg import PoseStamped, TwistStamped
 from nav_msgs.msg import Odometry
@@ -30,17 +34,22 @@ from rclpy.duration import Duration
 from rclpy.exceptions import NameValidationException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
 from std_msgs.msg import Header
 from std_srvs.srv import SetBool, Trigger
 
 from uav_vs.autopilot.link import load_signing_key
 from uav_vs.autopilot.session import (AutopilotError, CommandState, LinkState, Limits, Session,
                                       SessionConfig)
-from uav_vs.ros.convert import msg_to_pose, msg_to_twist, odometry_to_msg, stamp_to_ns
+from uav_vs.ros.convert import msg_to_pose, odometry_to_msg, stamp_to_ns
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, run
 from uav_vs.ros.params import Param, ParameterError, T, declare
 
 CONNECTION_PREFIXES = ('udp:', 'udpin:', 'udpout:', 'udpbcast:', 'tcp:', 'tcpin:', '/dev/', 'COM')
+# cmd_vel: room for the commands of a short executor stall, relayed in order.
+COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+# vision pose: only the newest is worth forwarding.
+NEWEST_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
 RATES = {'rates.local_position': 'LOCAL_POSITION_NED', 'rates.attitude': 'ATTITUDE',
          'rates.global_position': 'GLOBAL_POSITION_INT', 'rates.sys_status': 'SYS_STATUS'}
 
@@ -140,27 +149,25 @@ class MavlinkRelayNode(Node):
         self.counts = dict(cmd_vel=0, sent=0, refused=0, malformed=0, vision=0)
         self.next_warning: dict[str, float] = {}
 
-        fast, slow = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
-        newest = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
-        self.create_subscription(TwistStamped, 'cmd_vel', self.on_cmd_vel, newest,
-                                 callback_group=fast)
+        self.create_subscription(TwistStamped, 'cmd_vel', self.on_cmd_vel, COMMAND_QOS)
         if p['vision_pose_topic']:
             try:
                 self.create_subscription(PoseStamped, p['vision_pose_topic'], self.on_vision_pose,
-                                         newest, callback_group=fast)
+                                         NEWEST_QOS)
             except NameValidationException as err:
                 raise ParameterError(f'vision_pose_topic: {err}'.splitlines()[0]) from None
         self.odom_pub = self.create_publisher(Odometry, 'autopilot/odom', 10)
         self.diag = Diagnostics(self, hardware_id=p['connection'])
-        self.create_timer(1.0 / p['odom_rate'], self.publish_odom, callback_group=fast)
-        self.create_timer(p['diagnostics_period'], self.publish_diagnostics, callback_group=fast)
+        self.create_timer(1.0 / p['odom_rate'], self.publish_odom)
+        self.create_timer(p['diagnostics_period'], self.publish_diagnostics)
 
         self.session = Session(config).start()
-        self.create_service(SetBool, 'arm', self.on_arm, callback_group=slow)
+        flight = MutuallyExclusiveCallbackGroup()
+        self.create_service(SetBool, 'arm', self.on_arm, callback_group=flight)
         for name, call in (('takeoff', lambda: self.session.takeoff(self.takeoff_height)),
                            ('land', self.session.land), ('set_guided', self.session.set_guided),
                            ('install_signing_key', self.session.install_signing_key)):
-            self.create_service(Trigger, name, self.service(name, call), callback_group=slow)
+            self.create_service(Trigger, name, self.service(name, call), callback_group=flight)
         self.get_logger().info(f"relaying to {p['connection']} (arming "
                                f"{'allowed' if p['allow_arming'] else 'disabled'}, signing "
                                f"{'on' if p['signing_key_file'] else 'off'})")
@@ -172,9 +179,10 @@ class MavlinkRelayNode(Node):
         if frame not in (self.world, self.body):
             return self.malformed('cmd_vel frame', f'cmd_vel: frame_id {frame!r} is neither '
                                   f'{self.world!r} nor {self.body!r}')
-        linear, angular = msg_to_twist(msg)
+        v = msg.twist.linear
         try:
-            sent = self.session.send_velocity(linear, angular[2], body=frame == self.body)
+            sent = self.session.send_velocity((v.x, v.y, v.z), msg.twist.angular.z,
+                                              body=frame == self.body)
         except ValueError as err:
             return self.malformed('cmd_vel value', f'cmd_vel: {err}')
         self.counts['sent' if sent else 'refused'] += 1
@@ -228,16 +236,34 @@ class MavlinkRelayNode(Node):
             'statustext': s.statustext[-1] if s.statustext else ''})
 
     # ---------------------------------------------------------------- services
-    def on_arm(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+    async def on_arm(self, request: SetBool.Request,
+                     response: SetBool.Response) -> SetBool.Response:
         if request.data:
-            return self.trigger('arm', self.session.arm, response)
-        return self.trigger('disarm', self.session.disarm, response)
+            return await self.off_executor('arm', self.session.arm, response)
+        return await self.off_executor('disarm', self.session.disarm, response)
 
-    def service(self, name: str, call):
-        """A Trigger callback running `call`."""
-        return lambda request, response: self.trigger(name, call, response)
+    def service(self, name: str, call: Callable[[], None]):
+        """A Trigger callback running `call` off the executor thread."""
+        async def callback(request: Trigger.Request, response: Trigger.Response):
+            return await self.off_executor(name, call, response)
+        return callback
 
-    def trigger(self, name: str, call, response):
+    async def off_executor(self, name: str, call: Callable[[], None],
+                           response: SetBool.Response | Trigger.Response):
+        """trigger() on a worker thread, awaited: the executor spins on meanwhile."""
+        done, executor = Future(), self.executor
+
+        def work() -> None:
+            try:
+                done.set_result(self.trigger(name, call, response))
+            except Exception as err:   # a bug, not a refusal: raised in the executor
+                done.set_exception(err)
+            executor.wake()   # rclpy < 7.1.9 resumes an awaiting callback only when woken
+        threading.Thread(target=work, name=f'{name} service', daemon=True).start()
+        return await done
+
+    def trigger(self, name: str, call: Callable[[], None],
+                response: SetBool.Response | Trigger.Response):
         """Run a blocking session call; the autopilot's refusal goes into response.message."""
         try:
             call()
@@ -259,7 +285,7 @@ class MavlinkRelayNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    run(MavlinkRelayNode, 'mavlink_relay_node', args, threads=2)
+    run(MavlinkRelayNode, 'mavlink_relay_node', args)
 
 
 if __name__ == '__main__':
