@@ -4,8 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from uav_vs.vision.homography import (METHODS, adaptive_trials, estimate_homography,
-                                      solve_dlt, solve_inhomogeneous, transfer_error)
+from uav_vs.vision.homography import (METHODS, _linearise, adaptive_trials,
+                                      estimate_homography, refine_robust, solve_dlt,
+                                      solve_inhomogeneous, transfer_error)
 
 H_TRUE = np.array([[0.9, -0.2, 40.0],
                    [0.15, 1.1, -25.0],
@@ -81,7 +82,7 @@ def test_recovers_exact_homography_through_outliers(method, outlier_frac):
 def test_trial_count_follows_the_formula_and_stops_early_on_clean_data():
     src, dst, _ = matches(outlier_frac=0.0, noise=0.0)
     clean = estimate_homography(src, dst, rng=0)
-    assert clean.ok and clean.trials <= 64                  # one batch, N = 1 at eps = 0
+    assert clean.ok and clean.trials <= 8                   # first batch, N = 1 at eps = 0
     src, dst, good = matches(n=400, outlier_frac=0.6, noise=0.0, seed=3)
     r = estimate_homography(src, dst, rng=0, confidence=0.995, max_trials=5000)
     assert r.ok, r.reason
@@ -89,6 +90,61 @@ def test_trial_count_follows_the_formula_and_stops_early_on_clean_data():
     assert needed > 64                                      # really adaptive, not one batch
     assert needed <= r.trials < needed + 64                 # stops once N trials are drawn
     assert (r.inliers == good).all()
+
+
+def test_refinement_converges_to_the_truth_from_any_start():
+    src, dst, _ = matches(outlier_frac=0.0, noise=0.0)
+    start = H_TRUE @ np.array([[1.01, 0.02, 3.0], [-0.01, 0.99, -2.0], [1e-5, 2e-5, 1.0]])
+    assert corner_error(start) > 5.0
+    H = refine_robust(start, src, dst, 3.0, tol_px=1e-9)
+    assert corner_error(H) < 1e-6                           # exact data: the exact H
+    src, dst, _ = matches(outlier_frac=0.4, noise=0.5, seed=2)
+    a = refine_robust(start, src, dst, 3.0)
+    b = refine_robust(H_TRUE, src, dst, 3.0)
+    assert corner_error(a) < 0.5                            # 40 % outliers take no hold
+    np.testing.assert_allclose(project(a, CORNERS), project(b, CORNERS), atol=0.02)
+
+
+def test_linearisation_matches_finite_differences():
+    Hn = np.array([[0.9, -0.2, 0.1], [0.15, 1.1, -0.05], [0.2, -0.3, 1.0]])
+    rng = np.random.default_rng(6)
+    src, dst = rng.normal(0, 1, (6, 2)), rng.normal(0, 1, (6, 2))
+    ks, kd = 0.01, 0.02                             # normalisation scales, px -> normalised
+    r, J, z = _linearise(Hn, src, dst, ks, kd)
+    q = np.c_[src, np.ones(6)] @ Hn.T
+    p = np.c_[dst, np.ones(6)] @ np.linalg.inv(Hn).T
+    np.testing.assert_allclose(r, np.c_[(dst - q[:, :2] / q[:, 2:]) / kd,
+                                        (src - p[:, :2] / p[:, 2:]) / ks], atol=1e-12)
+    for k in range(8):
+        step = np.zeros(9)
+        step[k] = 1e-7
+        r_k = _linearise(Hn + step.reshape(3, 3), src, dst, ks, kd)[0]
+        np.testing.assert_allclose((r_k - r) / 1e-7, J[:, :, k], rtol=1e-5, atol=1e-3)
+    for x, z_i in zip(src, z):                      # 8 / (4 + |J|^2 + |J^-1|^2), J in px
+        w = Hn[2] @ [*x, 1]
+        u = Hn[:2] @ [*x, 1] / w
+        Jpx = (Hn[:2, :2] - np.outer(u, Hn[2, :2])) / w * ks / kd
+        expected = 8 / (4 + (Jpx ** 2).sum() + (np.linalg.inv(Jpx) ** 2).sum())
+        assert z_i == pytest.approx(expected, rel=1e-12)
+
+
+def test_refinement_treats_both_images_alike():
+    # Swapping the images must give the inverse H: the cost is symmetric in them.
+    Z = np.array([[0.45, -0.12, 300.0], [0.1, 0.5, 150.0], [1e-4, -2e-4, 1.0]])
+    rng = np.random.default_rng(4)
+    src = rng.uniform([0, 0], [640, 480], (300, 2))
+    dst = project(Z, src) + rng.normal(0, 0.3, (300, 2))
+    dst[:60] = rng.uniform([250, 120], [560, 400], (60, 2))   # outliers
+    fwd = refine_robust(Z, src, dst, 3.0, tol_px=1e-6)
+    bwd = np.linalg.inv(refine_robust(np.linalg.inv(Z), dst, src, 3.0, tol_px=1e-6))
+    np.testing.assert_allclose(project(fwd, CORNERS), project(bwd, CORNERS), atol=1e-3)
+
+
+def test_without_refinement_is_algorithm_1():
+    src, dst, good = matches(outlier_frac=0.4)
+    r = estimate_homography(src, dst, rng=0, refine=False)
+    assert r.ok and corner_error(r.H) < 1.0
+    assert (r.inliers & ~good).sum() <= 2 and (r.inliers & good).sum() >= 0.95 * good.sum()
 
 
 def test_too_few_points_is_a_failure():

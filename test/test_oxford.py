@@ -17,8 +17,6 @@ from uav_vs.vision.homography import estimate_homography
 # None: the baseline reports failure and so must we.
 BASELINE = {'graf': [0.90, 4.89, 2.36, None, None],
             'boat': [0.29, 0.22, 1.08, 1.62, 9.76]}
-# Pairs where the default estimator measures worse than the baseline (px, same matches).
-SHORT = {('boat', 3): 'ours 0.226 px vs 0.22', ('boat', 4): 'ours 1.22 px vs 1.08'}
 CASES = [(seq, n) for seq in BASELINE for n in range(2, 7)]
 
 
@@ -39,8 +37,7 @@ def project(H, pts):
     return q[:, :2] / q[:, 2:]
 
 
-@pytest.mark.parametrize('seq,n', [pytest.param(*c, marks=pytest.mark.xfail(
-    strict=True, reason=SHORT[c])) if c in SHORT else c for c in CASES])
+@pytest.mark.parametrize('seq,n', CASES)
 def test_corner_error_no_worse_than_opencv(shared_data, seq, n):
     folder = str(shared_data / 'oxford' / seq)
     ext = 'ppm' if seq == 'graf' else 'pgm'
