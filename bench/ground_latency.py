@@ -1,11 +1,15 @@
 """ground/latency: image stamp -> ground/pose, three camera processes at 30 Hz, 640x480.
 
-Frames rendered by the simulator are published as raw bgr8 images, stamped with the
-publish time, by a camera-driver-like node (sensor-data QoS) to three camshift_node
-processes feeding a trinocular_pose_node process. The latency of a pose is its
-arrival time minus its stamp. The reference is the same graph on Fast DDS's builtin
-transports (no shared-memory profile). Fast DDS reads its profile once per process,
-so each run measures in a process of its own.
+Three camera-driver processes, one per camera, publish frames rendered by the
+simulator as raw bgr8 images (sensor-data QoS), each stamped with its publish time,
+to three camshift_node processes feeding a trinocular_pose_node process. A probe
+process takes the latency of each pose (arrival time minus its stamp) and of each
+camera's landmarks (the first hop). The reference is the same graph on Fast DDS's
+builtin transports (no shared-memory profile). Fast DDS reads its profile once per
+process, so each run's processes all start with its environment.
+
+`python -m bench.ground_latency probe OUT.npy` runs one measurement;
+`python -m bench.ground_latency driver CAMERA START` is one camera driver.
 """
 import os
 import subprocess
@@ -32,85 +36,95 @@ from uav_vs.vision.ground_config import default_config_path, load_ground_config,
 RATE_HZ = 30.0
 SECONDS = 8.0
 WARMUP_S = 1.5
+N_FRAMES = 60
+CAMERAS = ['cam1', 'cam2', 'cam3']
 
 
-def _frames(config: Path, n: int) -> list[list[np.ndarray]]:
-    scene = GroundScene(load_ground_config(read_params_file(config)))
-    return [scene.render(figure_eight(k / RATE_HZ))[0] for k in range(n)]
+def _spin_until(executor, predicate, deadline: float) -> None:
+    while not predicate() and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
 
 
-def measure(config: Path, frames: list[list[np.ndarray]]) -> np.ndarray:
-    """Latencies (ms) of one run, in this process's Fast DDS set-up: row 0 the poses',
-    row 1 the cameras' landmarks (the first hop), NaN-padded to equal length."""
-    cams = [f'cam{k + 1}' for k in range(len(frames[0]))]
-    log_dir = Path(tempfile.mkdtemp(prefix='uav_vs_latency_'))
-    procs = ground_graph(config, cams, log_dir)
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = rclpy.create_node('latency_bench', context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(node)
-    latencies: list[float] = []
-    hops: list[float] = []
+def driver(camera: str, start: float) -> None:
+    """Publish this camera's rendered frames at RATE_HZ from CLOCK_MONOTONIC `start`."""
+    config = default_config_path()
+    cfg = load_ground_config(read_params_file(config))
+    index = [c.name for c in cfg.cameras].index(camera)
+    scene = GroundScene(cfg)
+    msgs = [bgr_to_image(scene.render(figure_eight(k / RATE_HZ))[0][index],
+                         Header(frame_id=f'{camera}_optical')) for k in range(N_FRAMES)]
+    rclpy.init()
+    node = rclpy.create_node(f'{camera}_driver')
+    pub = node.create_publisher(Image, f'{camera}/image_raw', qos_profile_sensor_data)
     clock = node.get_clock()
+    k = 0
+    while (now := time.monotonic()) < start + SECONDS:
+        due = start + k / RATE_HZ
+        if now < due:
+            time.sleep(due - now)
+            continue
+        msg = msgs[k % N_FRAMES]
+        msg.header.stamp = clock.now().to_msg()
+        pub.publish(msg)
+        k += 1
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def measure(log_dir: Path) -> np.ndarray:
+    """Latencies (ms) of one run: row 0 the poses', row 1 the cameras' landmarks
+    (first hop), NaN-padded to equal length."""
+    procs = ground_graph(default_config_path(), CAMERAS, log_dir)
+    rclpy.init()
+    node = rclpy.create_node('latency_probe')
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    clock = node.get_clock()
+    poses: list[float] = []
+    hops: list[float] = []
 
     def age_ms(msg) -> float:
         return (clock.now().nanoseconds - stamp_to_ns(msg.header.stamp)) / 1e6
 
-    node.create_subscription(PoseStamped, 'ground/pose', lambda m: latencies.append(age_ms(m)),
-                             100)
-    for c in cams:
-        node.create_subscription(PolygonStamped, f'{c}/landmarks', lambda m: hops.append(age_ms(m)),
-                                 100)
-    pubs = [node.create_publisher(Image, f'{c}/image_raw', qos_profile_sensor_data) for c in cams]
-    msgs = [[bgr_to_image(img, Header(frame_id=f'{c}_optical')) for img, c in zip(fs, cams)]
-            for fs in frames]
+    node.create_subscription(PoseStamped, 'ground/pose', lambda m: poses.append(age_ms(m)), 100)
+    for c in CAMERAS:
+        node.create_subscription(PolygonStamped, f'{c}/landmarks',
+                                 lambda m: hops.append(age_ms(m)), 100)
+    start = time.monotonic() + 10.0
+    drivers = [subprocess.Popen([sys.executable, '-m', 'bench.ground_latency', 'driver', c,
+                                 repr(start)]) for c in CAMERAS]
     try:
-        deadline = time.monotonic() + 30
-        while (min(p.get_subscription_count() for p in pubs) == 0
-               or node.count_publishers('ground/pose') == 0) and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
-        start = time.monotonic()
-        k = 0
-        while (now := time.monotonic()) - start < SECONDS:
-            if now >= start + k / RATE_HZ:
-                stamp = clock.now().to_msg()
-                for pub, msg in zip(pubs, msgs[k % len(msgs)]):
-                    msg.header.stamp = stamp
-                    pub.publish(msg)
-                if now - start < WARMUP_S:
-                    latencies.clear()
-                    hops.clear()
-                k += 1
-            executor.spin_once(timeout_sec=max(0.0, start + k / RATE_HZ - time.monotonic()))
-        end = time.monotonic() + 0.5
-        while time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.05)
+        _spin_until(executor, lambda: time.monotonic() >= start + WARMUP_S, start + WARMUP_S + 1)
+        poses.clear()
+        hops.clear()
+        _spin_until(executor, lambda: False, start + SECONDS + 0.5)
     finally:
+        for d in drivers:
+            d.wait(timeout=30)
         executor.shutdown()
         node.destroy_node()
-        rclpy.shutdown(context=ctx)
+        rclpy.shutdown()
         graph.stop(procs)
-    out = np.full((2, max(len(latencies), len(hops))), np.nan)
-    out[0, :len(latencies)], out[1, :len(hops)] = latencies, hops
+    out = np.full((2, max(len(poses), len(hops), 1)), np.nan)
+    out[0, :len(poses)], out[1, :len(hops)] = poses, hops
     return out
 
 
-def _run(profile: str | None) -> np.ndarray:
+def _run(profile: str | None) -> tuple[np.ndarray, np.ndarray]:
     env = {k: v for k, v in os.environ.items() if k != 'FASTRTPS_DEFAULT_PROFILES_FILE'}
     if profile:
         env['FASTRTPS_DEFAULT_PROFILES_FILE'] = profile
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / 'latency.npy'
-        subprocess.run([sys.executable, '-m', 'bench.ground_latency', str(out)], env=env,
+        subprocess.run([sys.executable, '-m', 'bench.ground_latency', 'probe', str(out)], env=env,
                        check=True)
-        return np.load(out)
+        poses, hops = np.load(out)
+    return poses[np.isfinite(poses)], hops[np.isfinite(hops)]
 
 
 def latency() -> None:
     shm = str(Path(__file__).resolve().parents[1] / 'config' / 'fastdds_shm.xml')
     (ours, hops), (builtin, _) = _run(shm), _run(None)
-    ours, hops, builtin = (a[np.isfinite(a)] for a in (ours, hops, builtin))
     expected = int((SECONDS - WARMUP_S) * RATE_HZ)
     report('ground', 'ground/latency', ours, reference='builtin transports', ref_ms=builtin,
            poses=len(ours), expected_poses=expected, ref_poses=len(builtin),
@@ -123,5 +137,8 @@ def main() -> None:
 
 
 if __name__ == '__main__':
-    config = default_config_path()
-    np.save(sys.argv[1], measure(config, _frames(config, 60)))
+    if sys.argv[1] == 'driver':
+        driver(sys.argv[2], float(sys.argv[3]))
+    else:
+        with tempfile.TemporaryDirectory(prefix='uav_vs_latency_') as logs:
+            np.save(sys.argv[2], measure(Path(logs)))
