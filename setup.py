@@ -16,6 +16,8 @@ EXECUTABLES = {
     'target_tracker_node': 'uav_vs.nodes.target_tracker_node:main',
     'make_onboard_bag': 'uav_vs.sim.onboard_bag:main',
     'fuzzy_controller_node': 'uav_vs.nodes.fuzzy_controller_node:main',
+    'bag_play': 'uav_vs.nodes.bag_player:main',
+    'bag_record': 'uav_vs.nodes.bag_recorder:main',
 }
 
 DATA_FILES = [

@@ -1,10 +1,15 @@
-"""Publish recorded (raw CDR) messages with real rclpy publishers of the recorded type."""
+"""Publish recorded (raw CDR) messages with real rclpy publishers of the recorded type,
+and convert QoS between rclpy and bag metadata."""
 import importlib
 
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.publisher import Publisher
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
+                                QosTime)
+
+from uav_vs.bag.reader import QosOffer
 
 
 def message_class(msgtype: str) -> type:
@@ -13,10 +18,32 @@ def message_class(msgtype: str) -> type:
     return getattr(importlib.import_module(f'{package}.{kind}'), name)
 
 
+def lossless_qos(offer: QosOffer, force_reliable: bool = False) -> QoSProfile:
+    """KEEP_ALL with the offer's reliability (RELIABLE if forced) and durability."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_ALL,
+        reliability=(ReliabilityPolicy.RELIABLE if offer.reliable or force_reliable
+                     else ReliabilityPolicy.BEST_EFFORT),
+        durability=(DurabilityPolicy.TRANSIENT_LOCAL if offer.transient_local
+                    else DurabilityPolicy.VOLATILE))
+
+
+def bag_qos(profile: QoSProfile) -> Qos:
+    """An rclpy QoS profile as bag metadata records it (same enum values as rmw)."""
+    def time(d: Duration) -> QosTime:
+        return QosTime(*divmod(d.nanoseconds, 10**9))
+
+    return Qos(QosHistory(int(profile.history)), profile.depth,
+               QosReliability(int(profile.reliability)), QosDurability(int(profile.durability)),
+               time(profile.deadline), time(profile.lifespan),
+               QosLiveliness(int(profile.liveliness)), time(profile.liveliness_lease_duration),
+               profile.avoid_ros_namespace_conventions)
+
+
 class RawPublishers:
     """One lossless (reliable, keep-all) publisher per topic, created on first use."""
 
-    QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    QOS = lossless_qos(QosOffer())
 
     def __init__(self, node: Node, remap: dict[str, str] | None = None) -> None:
         self._node = node

@@ -1,0 +1,77 @@
+"""Write raw CDR messages to a rosbag2 (metadata version 9, as ROS 2 Jazzy writes it), with rosbags.
+
+Each topic's message definition comes from rosbags' Jazzy type store; types it lacks
+are read from the `share/<package>/msg/<Type>.msg` files of the installed message
+packages (the ament prefixes, then this Python's prefix).
+"""
+import os
+import sys
+from collections import Counter
+from pathlib import Path
+from typing import Sequence
+
+from rosbags.interfaces import Connection, Nodetype, Qos
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from uav_vs.bag.reader import BagError
+
+STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
+
+
+class BagWriter:
+    """A new rosbag2 folder at `path`; `close()` writes its metadata.yaml."""
+
+    def __init__(self, path: Path | str, storage: str = 'mcap') -> None:
+        self.path = Path(path)
+        self.counts: Counter[str] = Counter()
+        self._store = get_typestore(Stores.ROS2_JAZZY)
+        try:
+            self._writer = Writer(self.path, version=9, storage_plugin=STORAGES[storage])
+            self._writer.open()
+        except Exception as err:
+            raise BagError(f'{self.path}: cannot create bag: {err}') from err
+
+    def add_topic(self, topic: str, msgtype: str, offered: Sequence[Qos] = (),
+                  rihs01: str | None = None) -> Connection:
+        """Register a topic with the QoS profiles its publishers offered.
+
+        `rihs01` is the type hash the publishers announce; rosbags computes it when not
+        given, which is right for the types of its Jazzy store (its hash of types read
+        from .msg files can differ from rosidl's).
+        """
+        self._register(msgtype)
+        return self._writer.add_connection(
+            topic, msgtype, msgdef=self._store.generate_msgdef(msgtype, ros_version=2)[0],
+            rihs01=rihs01 or self._store.hash_rihs01(msgtype), offered_qos_profiles=offered)
+
+    def write(self, conn: Connection, t_ns: int, raw: bytes) -> None:
+        self._writer.write(conn, t_ns, raw)
+        self.counts[conn.topic] += 1
+
+    def close(self) -> None:
+        self._writer.close()
+
+    def _register(self, msgtype: str) -> None:
+        """Add msgtype and the types it uses to the type store, from their .msg files."""
+        if msgtype in self._store.fielddefs:
+            return
+        types = get_types_from_msg(_msg_definition(msgtype), msgtype)
+        self._store.register(types)
+        for _, fields in types.values():
+            for _, (kind, sub) in fields:
+                if kind == Nodetype.NAME:
+                    self._register(sub)
+                elif kind in (Nodetype.ARRAY, Nodetype.SEQUENCE) and sub[0][0] == Nodetype.NAME:
+                    self._register(sub[0][1])
+
+
+def _msg_definition(msgtype: str) -> str:
+    package, kind, name = msgtype.split('/')
+    prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    for prefix in [*prefixes, sys.prefix]:
+        file = Path(prefix) / 'share' / package / kind / f'{name}.msg'
+        if file.is_file():
+            return file.read_text()
+    raise BagError(f'no message definition for {msgtype} (no share/{package}/{kind}/{name}.msg '
+                   f'in {", ".join([*prefixes, sys.prefix])})')
