@@ -18,6 +18,7 @@ EXECUTABLES = {
     'fuzzy_controller_node': 'uav_vs.nodes.fuzzy_controller_node:main',
     'bag_play': 'uav_vs.nodes.bag_player:main',
     'bag_record': 'uav_vs.nodes.bag_recorder:main',
+    'sim_world': 'uav_vs.nodes.sim_world_node:main',
 }
 
 DATA_FILES = [

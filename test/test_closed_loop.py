@@ -1,0 +1,42 @@
+"""Closed loop (chapter section 5): the vehicle flies on vision alone, judged against truth.
+
+The whole graph runs as separate processes around the simulated vehicle
+(uav_vs.scenario.fly): sim_world, mavlink_relay_node, three camshift_node and the
+trinocular_pose_node, homography_pose_node and fuzzy_controller_node. The vehicle takes
+off, holds, flies to a setpoint on the ground station's pose and lands on a pad on the
+onboard pose. Every assertion is against the simulator's truth (`truth/pose`), and the
+ROS graph itself is asked what the controller flew on.
+"""
+from uav_vs.flight_report import FlightReport
+from uav_vs.scenario import Landing, Scenario, Setpoint, fly
+
+SCENARIO = Scenario('test', 1.3, Setpoint((0.0, 0.0, 1.3), hold=1.0),
+                    (Setpoint((0.7, -0.5, 1.5), hold=1.5),),
+                    Landing((-0.5, 0.4), approach=1.1, final=0.8, hold=1.0))
+
+
+def test_reaches_setpoint_and_lands_on_pad_on_vision_alone(tmp_path):
+    log = fly(SCENARIO, tmp_path)
+    report = FlightReport.from_log(log)
+    print(report.summary())
+    assert log.failure == '', log.failure
+
+    # The controller's only pose input was a vision pose: the ground station's for the
+    # setpoints, the onboard camera's over the pad; never the truth nor autopilot/odom.
+    for event in log.setpoints:
+        assert event.controller_inputs == tuple(sorted((f'/{event.source}/pose', '/setpoint'))), \
+            (event.name, event.controller_inputs)
+    assert [e.source for e in log.setpoints] == ['ground', 'ground', 'onboard', 'onboard']
+
+    setpoint = report.setpoints[1]
+    assert setpoint.reached
+    assert setpoint.error_max_m <= 0.2           # true distance over the whole hold
+
+    assert report.landing is not None
+    assert report.landing.touchdown[2] < 0.01    # on the ground
+    assert report.landing.error_m <= 0.3         # true touchdown point to the pad
+
+    # Both vision poses were scored against truth in flight and are accurate.
+    assert report.sources['ground'].samples > 0 and report.sources['onboard'].samples > 0
+    assert report.sources['ground'].position_rmse_m <= 0.05
+    assert report.sources['onboard'].position_rmse_m <= 0.05

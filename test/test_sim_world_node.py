@@ -1,0 +1,64 @@
+"""sim_world as a process, started from its console script with the three params files.
+
+What it publishes is checked against the vehicle simulator's state at home (the world
+origin, heading north) and the calibration files; bad parameters stop it at start-up.
+"""
+import math
+import subprocess
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
+
+from conftest import REPO, wait_for
+from uav_vs.graph import executable
+from uav_vs.ros.convert import image_to_bgr, msg_to_pose, stamp_to_ns, yaw_of
+from uav_vs.scenario import free_port
+from uav_vs.vision.ground_config import read_params_file
+
+FILES = ['--params-file', str(REPO / 'config' / 'ground_trinocular.yaml'),
+         '--params-file', str(REPO / 'config' / 'onboard.yaml'),
+         '--params-file', str(REPO / 'config' / 'sim_world.yaml')]
+
+
+def test_publishes_ground_images_and_truth_of_the_vehicle_at_home(ros_node, processes):
+    proc = processes('sim_world', [*FILES, '-p',
+                                   f'vehicle.connection:=tcpin:127.0.0.1:{free_port()}'])
+    got: dict[str, list] = {'image': [], 'info': [], 'truth': [], 'onboard': []}
+    ros_node.create_subscription(Image, '/cam2/image_raw', got['image'].append,
+                                 qos_profile_sensor_data)
+    ros_node.create_subscription(CameraInfo, '/cam2/camera_info', got['info'].append, 10)
+    ros_node.create_subscription(PoseStamped, '/truth/pose', got['truth'].append, 50)
+    ros_node.create_subscription(Image, '/onboard/image_raw', got['onboard'].append,
+                                 qos_profile_sensor_data)
+    assert wait_for(lambda: len(got['image']) >= 3 and len(got['info']) >= 3, 60), proc.poll()
+
+    image, info = got['image'][-1], got['info'][-1]
+    assert image_to_bgr(image, (640, 480)).shape == (480, 640, 3)
+    assert image.header.frame_id == info.header.frame_id == 'cam2_optical'
+    K = read_params_file(REPO / 'config' / 'ground_trinocular.yaml')['cameras.cam2.K']
+    np.testing.assert_allclose(info.k, K)
+    # Every frame's truth carries the frame's stamp; at home it is the world origin,
+    # heading north (the autopilot's yaw 0).
+    truth = {stamp_to_ns(m.header.stamp): m for m in got['truth']}
+    assert stamp_to_ns(image.header.stamp) in truth
+    position, q = msg_to_pose(truth[stamp_to_ns(image.header.stamp)])
+    assert truth[stamp_to_ns(image.header.stamp)].header.frame_id == 'world'
+    np.testing.assert_allclose(position, 0.0, atol=1e-9)
+    assert yaw_of(q) == pytest.approx(math.pi / 2)
+    assert got['onboard'] == []            # on the ground, the onboard camera sees nothing
+
+
+@pytest.mark.parametrize('override, expected', [
+    ('ground.background:=nope.jpg', 'ground.background: cannot read'),
+    ('onboard.rate:=-1.0', 'onboard.rate: expected a number in [0, 60]'),
+    ('vehicle.connection:=tcpin:10.255.255.1:5760', 'vehicle.connection: cannot serve'),
+])
+def test_bad_parameter_stops_it_with_one_line(override, expected):
+    run = subprocess.run([executable('sim_world'), '--ros-args', *FILES, '-p', override],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2
+    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
+    assert len(fatal) == 1 and expected in fatal[0], run.stderr

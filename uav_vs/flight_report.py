@@ -1,0 +1,304 @@
+"""What a closed-loop flight recorded, and how well it went against the simulator's truth.
+
+A `FlightLog` holds every pose of the flight by source (the simulator's `truth/pose`,
+the ground station's `ground/pose`, the onboard `onboard/pose`, the autopilot's
+`autopilot/odom`), the velocity commands, the camera frame stamps and the mission's
+events; `FlightReport.from_log` scores it:
+
+- each pose source against truth: a vision pose is stamped with its image's stamp, for
+  which the simulator published the truth, so they are matched exactly by stamp; the
+  autopilot's estimate is compared with truth interpolated at its stamp;
+- each setpoint (section 5: hold, move through setpoints): the true distance to it
+  over the hold the mission accepted, as judged by the vision pose it flew on;
+- the landing: the true touchdown point's horizontal distance to the pad;
+- latencies: a vision pose's arrival at the recorder minus its image's stamp.
+
+No ROS here: the runner (uav_vs.scenario) fills the log, `save` / `load` keep it as .npz.
+"""
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+SOURCES = ('ground', 'onboard', 'odom')
+LABELS = {'truth': 'simulator truth', 'ground': 'ground/pose (trinocular, section 3)',
+          'onboard': 'onboard/pose (homography, section 4)',
+          'odom': 'autopilot/odom (autopilot estimate)'}
+
+
+@dataclass
+class PoseTrack:
+    """Poses of one topic in arrival order: header stamps and arrival times (ns),
+    positions (n, 3) in world ENU, m, and yaws (n,), rad."""
+
+    stamps: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    received: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    yaws: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @classmethod
+    def from_rows(cls, rows: list[tuple[int, int, float, float, float, float]]) -> 'PoseTrack':
+        """From (stamp_ns, received_ns, x, y, z, yaw) rows."""
+        if not rows:
+            return cls()
+        a = np.array(rows, dtype=object)
+        return cls(a[:, 0].astype(np.int64), a[:, 1].astype(np.int64),
+                   a[:, 2:5].astype(float), a[:, 5].astype(float))
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+
+@dataclass
+class CommandTrack:
+    """cmd_vel as published: stamps (ns), linear (n, 3), m/s, yaw rate (n,), rad/s."""
+
+    stamps: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    linear: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    yaw_rate: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @classmethod
+    def from_rows(cls, rows: list[tuple[int, float, float, float, float]]) -> 'CommandTrack':
+        """From (stamp_ns, vx, vy, vz, yaw_rate) rows."""
+        if not rows:
+            return cls()
+        a = np.array(rows, dtype=object)
+        return cls(a[:, 0].astype(np.int64), a[:, 1:4].astype(float), a[:, 4].astype(float))
+
+
+@dataclass
+class SetpointEvent:
+    """One setpoint the mission flew to: what, on which pose, and when (ns, ROS time).
+
+    `settled_ns` is when the vision pose entered the tolerance for good, `reached_ns`
+    when it had stayed there for the hold; both are None if it timed out."""
+
+    name: str
+    source: str                      # 'ground' or 'onboard': the controller's pose input
+    target: tuple[float, float, float, float]   # x, y, z (m, world ENU), yaw (rad)
+    start_ns: int
+    settled_ns: int | None = None
+    reached_ns: int | None = None
+    controller_inputs: tuple[str, ...] = ()    # topics the controller subscribed to then
+
+
+@dataclass
+class FlightLog:
+    """Everything one closed-loop flight recorded."""
+
+    scenario: str
+    truth: PoseTrack
+    ground: PoseTrack
+    onboard: PoseTrack
+    odom: PoseTrack
+    commands: CommandTrack
+    ground_frames: np.ndarray        # stamps of the ground frame sets, ns
+    onboard_frames: np.ndarray       # stamps of the onboard frames, ns
+    setpoints: list[SetpointEvent]
+    pad: tuple[float, float] | None  # landing pad x, y in world, m
+    takeoff_ns: int | None = None    # the takeoff command
+    onboard_start_ns: int | None = None   # homography_pose_node started
+    land_ns: int | None = None       # the LAND command
+    landed_ns: int | None = None     # the autopilot reported disarmed after landing
+    failure: str = ''                # why the mission stopped early; '' if it completed
+    exit_codes: dict[str, int] = field(default_factory=dict)  # of every process, at the end
+
+    def save(self, path: Path) -> None:
+        arrays = {f'{name}.{key}': value for name in ('truth', *SOURCES)
+                  for key, value in asdict(getattr(self, name)).items()}
+        arrays.update({f'commands.{k}': v for k, v in asdict(self.commands).items()})
+        meta = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in
+                ('truth', *SOURCES, 'commands', 'ground_frames', 'onboard_frames')}
+        meta['setpoints'] = [asdict(event) for event in self.setpoints]
+        np.savez_compressed(path, ground_frames=self.ground_frames,
+                            onboard_frames=self.onboard_frames, meta=json.dumps(meta), **arrays)
+
+    @classmethod
+    def load(cls, path: Path) -> 'FlightLog':
+        with np.load(path) as z:
+            tracks = {name: PoseTrack(*(z[f'{name}.{k}'] for k in
+                                        ('stamps', 'received', 'positions', 'yaws')))
+                      for name in ('truth', *SOURCES)}
+            commands = CommandTrack(*(z[f'commands.{k}'] for k in ('stamps', 'linear', 'yaw_rate')))
+            meta = json.loads(str(z['meta']))
+            frames = z['ground_frames'], z['onboard_frames']
+        meta['setpoints'] = [SetpointEvent(**{**s, 'target': tuple(s['target']),
+                                              'controller_inputs': tuple(s['controller_inputs'])})
+                             for s in meta['setpoints']]
+        meta['pad'] = tuple(meta['pad']) if meta['pad'] is not None else None
+        return cls(commands=commands, ground_frames=frames[0], onboard_frames=frames[1],
+                   **tracks, **meta)
+
+
+@dataclass(frozen=True)
+class SourceScore:
+    """One pose source against truth."""
+
+    samples: int
+    position_rmse_m: float
+    position_max_m: float
+    yaw_rmse_deg: float
+    latency_median_ms: float         # arrival minus stamp
+    latency_p95_ms: float
+
+
+@dataclass(frozen=True)
+class SetpointScore:
+    name: str
+    source: str
+    target: tuple[float, float, float, float]
+    reached: bool
+    settle_s: float                  # command to settled (by the vision pose)
+    error_rms_m: float               # true distance to the target over the hold
+    error_max_m: float
+    error_end_m: float               # ... when the hold was accepted
+    yaw_error_max_deg: float
+
+
+@dataclass(frozen=True)
+class LandingScore:
+    pad: tuple[float, float]
+    touchdown: tuple[float, float, float]  # true position after landing, m
+    error_m: float                   # horizontal distance from the pad
+
+
+@dataclass(frozen=True)
+class FlightReport:
+    scenario: str
+    sources: dict[str, SourceScore]
+    setpoints: list[SetpointScore]
+    landing: LandingScore | None
+    ground_frames: int
+    onboard_frames: int
+    duration_s: float                # takeoff command to landed (or the end of the log)
+    failure: str
+    exit_codes: dict[str, int]       # of every process of the graph
+
+    @classmethod
+    def from_log(cls, log: FlightLog) -> 'FlightReport':
+        windows = {name: flight_window(log, name) for name in SOURCES}
+        sources = {name: score_source(getattr(log, name), log.truth, name != 'odom', *windows[name])
+                   for name in SOURCES}
+        frames = {name: int(((stamps >= windows[name][0]) & (stamps <= windows[name][1])).sum())
+                  for name, stamps in (('ground', log.ground_frames),
+                                       ('onboard', log.onboard_frames))}
+        setpoints = [score_setpoint(event, log) for event in log.setpoints]
+        landing = None
+        if log.pad is not None and log.landed_ns is not None and len(log.truth):
+            after = log.truth.stamps >= log.landed_ns
+            p = log.truth.positions[np.flatnonzero(after)[0] if after.any() else -1]
+            landing = LandingScore(log.pad, tuple(map(float, p)),
+                                   float(math.hypot(p[0] - log.pad[0], p[1] - log.pad[1])))
+        start = log.takeoff_ns or (int(log.truth.stamps[0]) if len(log.truth) else 0)
+        end = log.landed_ns or (int(log.truth.stamps[-1]) if len(log.truth) else start)
+        return cls(log.scenario, sources, setpoints, landing, frames['ground'],
+                   frames['onboard'], (end - start) * 1e-9, log.failure, log.exit_codes)
+
+    def summary(self) -> str:
+        lines = [f'scenario {self.scenario}: ' + (f'FAILED: {self.failure}' if self.failure
+                                                  else f'completed in {self.duration_s:.1f} s')]
+        frames = {'ground': self.ground_frames, 'onboard': self.onboard_frames}
+        lines.append('pose sources against simulator truth (takeoff to LAND):')
+        for name, s in self.sources.items():
+            if not s.samples:
+                lines.append(f'  {name:8s} no samples')
+                continue
+            rate = f' from {frames[name]} frames' if name in frames else ''
+            latency = (f', latency median {s.latency_median_ms:.1f} ms, '
+                       f'p95 {s.latency_p95_ms:.1f} ms' if name in frames else '')
+            lines.append(f'  {name:8s} {s.samples} poses{rate}: position RMSE '
+                         f'{s.position_rmse_m * 100:.2f} cm (max {s.position_max_m * 100:.2f} cm),'
+                         f' yaw RMSE {s.yaw_rmse_deg:.2f} deg{latency}')
+        lines.append('setpoints (true error over the hold):')
+        for s in self.setpoints:
+            x, y, z, yaw = s.target
+            where = f'({x:+.2f}, {y:+.2f}, {z:.2f}) m, yaw {math.degrees(yaw):.0f} deg'
+            if not s.reached:
+                lines.append(f'  {s.name:14s} {where} on {s.source}: NOT REACHED')
+                continue
+            lines.append(f'  {s.name:14s} {where} on {s.source}: settled in {s.settle_s:.1f} s;'
+                         f' error {s.error_end_m * 100:.1f} cm at the end, RMS '
+                         f'{s.error_rms_m * 100:.1f} cm, max {s.error_max_m * 100:.1f} cm, '
+                         f'yaw max {s.yaw_error_max_deg:.1f} deg')
+        if self.landing is not None:
+            x, y, _ = self.landing.touchdown
+            lines.append(f'landing: touchdown at ({x:+.3f}, {y:+.3f}) m, '
+                         f'{self.landing.error_m * 100:.1f} cm from the pad at '
+                         f'({self.landing.pad[0]:+.2f}, {self.landing.pad[1]:+.2f}) m')
+        bad = {label: code for label, code in self.exit_codes.items() if code != 0}
+        if bad:
+            lines.append(f'exit status other than 0 when stopped: {bad} (see the logs)')
+        return '\n'.join(lines)
+
+
+def flight_window(log: FlightLog, source: str) -> tuple[int, int]:
+    """Stamps (ns) over which a pose source is scored: from the takeoff command (the
+    onboard pose: from its first pose) to the LAND command (or the end of the log)."""
+    track = getattr(log, source)
+    start = log.takeoff_ns if log.takeoff_ns is not None else 0
+    if source == 'onboard' and len(track):
+        start = max(start, int(track.stamps[0]))
+    end = log.land_ns if log.land_ns is not None else np.iinfo(np.int64).max
+    return start, end
+
+
+def score_source(track: PoseTrack, truth: PoseTrack, exact: bool, start_ns: int,
+                 end_ns: int) -> SourceScore:
+    """Errors against truth of `track`'s poses stamped in [start_ns, end_ns]: matched
+    with the truth of the same stamp (`exact`) or interpolated."""
+    keep = (track.stamps >= start_ns) & (track.stamps <= end_ns)
+    if exact:
+        index = {int(s): i for i, s in enumerate(truth.stamps)}
+        keep &= np.array([int(s) in index for s in track.stamps], bool)
+        rows = [index[int(s)] for s in track.stamps[keep]]
+        true_p, true_yaw = truth.positions[rows], truth.yaws[rows]
+    else:
+        keep &= (track.stamps >= truth.stamps[0]) & (track.stamps <= truth.stamps[-1]) \
+            if len(truth) else np.zeros(len(track), bool)
+        true_p, true_yaw = interpolate(truth, track.stamps[keep])
+    if not keep.any():
+        nan = math.nan
+        return SourceScore(0, nan, nan, nan, nan, nan)
+    dp = np.linalg.norm(track.positions[keep] - true_p, axis=1)
+    dyaw = np.degrees(angle_difference(track.yaws[keep], true_yaw))
+    latency = (track.received[keep] - track.stamps[keep]) * 1e-6
+    return SourceScore(int(keep.sum()), rms(dp), float(dp.max()), rms(dyaw),
+                       float(np.median(latency)), float(np.percentile(latency, 95)))
+
+
+def score_setpoint(event: SetpointEvent, log: FlightLog) -> SetpointScore:
+    """The true error over the hold window [settled, reached] of one setpoint."""
+    nan = math.nan
+    if event.reached_ns is None or event.settled_ns is None:
+        return SetpointScore(event.name, event.source, event.target, False, nan, nan, nan, nan,
+                             nan)
+    t = log.truth
+    window = (t.stamps >= event.settled_ns) & (t.stamps <= event.reached_ns)
+    target = np.array(event.target)
+    dp = np.linalg.norm(t.positions[window] - target[:3], axis=1)
+    dyaw = np.degrees(np.abs(angle_difference(t.yaws[window], target[3])))
+    settle = max(0.0, (event.settled_ns - event.start_ns) * 1e-9)
+    if not len(dp):
+        return SetpointScore(event.name, event.source, event.target, True, settle, nan, nan, nan,
+                             nan)
+    return SetpointScore(event.name, event.source, event.target, True, settle, rms(dp),
+                         float(dp.max()), float(dp[-1]), float(dyaw.max()))
+
+
+def interpolate(track: PoseTrack, stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and yaws of `track` linearly interpolated at `stamps` (yaw unwrapped)."""
+    t = (track.stamps - track.stamps[0]) * 1e-9
+    q = (np.asarray(stamps) - track.stamps[0]) * 1e-9
+    positions = np.column_stack([np.interp(q, t, track.positions[:, k]) for k in range(3)])
+    return positions, np.interp(q, t, np.unwrap(track.yaws))
+
+
+def angle_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a - b wrapped to [-pi, pi)."""
+    return (np.asarray(a) - np.asarray(b) + np.pi) % (2 * np.pi) - np.pi
+
+
+def rms(a: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(a)))) if len(a) else math.nan

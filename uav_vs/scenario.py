@@ -1,0 +1,429 @@
+"""Chapter section 5 in closed loop: take off and hold, move through setpoints, land on a pad.
+
+`fly(scenario, out_dir)` starts the graph as separate processes, each the way
+`ros2 run` would (uav_vs.graph.start with `--ros-args --params-file config/...`):
+
+    sim_world                  the MAVLink vehicle and its cameras (config/sim_world.yaml)
+    mavlink_relay_node         cmd_vel to the vehicle, autopilot/odom back
+    camshift_node x3, trinocular_pose_node    ground/pose (section 3)
+    fuzzy_controller_node      pose error to cmd_vel (section 6), on ground/pose, and on
+                               onboard/pose for the landing (restarted with that input)
+    homography_pose_node       onboard/pose (section 4), started once the vehicle hovers
+                               at the hold setpoint, initialised at the ground station's
+                               pose of it (so both vision poses share `world`)
+
+and flies the mission: the relay's `set_guided`, `arm`, `takeoff`; the controller's
+`/fuzzy_controller_node/enable`; one `setpoint` after another, each accepted once the
+vision pose the controller flies on has stayed within the tolerance for the hold; over
+the pad, the relay's `land`. The mission never looks at the truth or at the autopilot's
+estimate; it records them, with both vision poses and the commands, into a
+`FlightLog` that uav_vs.flight_report scores.
+"""
+import math
+import socket
+import subprocess
+import threading
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, TwistStamped
+from nav_msgs.msg import Odometry
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import NodeNameNonExistentError
+from sensor_msgs.msg import CameraInfo
+from std_msgs.msg import Header
+from std_srvs.srv import SetBool, Trigger
+
+from uav_vs import graph
+from uav_vs.flight_report import CommandTrack, FlightLog, PoseTrack, SetpointEvent
+from uav_vs.ground_replay import ground_graph
+from uav_vs.ros.convert import msg_to_odometry, msg_to_pose, msg_to_twist, stamp_to_ns, yaw_of
+from uav_vs.vision.ground_config import default_config_path, read_params_file
+
+NORTH = math.pi / 2          # ENU heading of the vehicle at boot (MAVLink yaw 0 = north)
+RELAY = '/mavlink_relay_node'
+
+
+@dataclass(frozen=True)
+class Setpoint:
+    """A pose to reach and hold (section 5): position in world ENU, m; yaw, rad."""
+
+    position: tuple[float, float, float]
+    yaw: float = NORTH
+    hold: float = 2.0            # s the vision pose must stay within the tolerance
+    tolerance: float = 0.05      # m, distance of the vision pose from the setpoint
+    yaw_tolerance: float = 0.05  # rad
+    timeout: float = 30.0        # s to settle and hold
+
+
+@dataclass(frozen=True)
+class Landing:
+    """Land on a pad with the onboard pose (section 5): centre over it at `approach`
+    height, descend to `final` height, then the autopilot's LAND (straight down)."""
+
+    pad: tuple[float, float]     # x, y in world, m
+    approach: float = 1.2        # m
+    final: float = 0.8           # m
+    hold: float = 1.5            # s at each height
+    tolerance: float = 0.03      # m
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Take off to `takeoff_height`, hold `hold`, fly `setpoints`, land (on the pad of
+    `landing`, with the onboard pose; without one, where the vehicle is)."""
+
+    name: str
+    takeoff_height: float
+    hold: Setpoint
+    setpoints: tuple[Setpoint, ...] = ()
+    landing: Landing | None = None
+
+
+HOLD = Scenario('hold', 1.5, Setpoint((0.0, 0.0, 1.5), hold=5.0))
+SETPOINTS = Scenario('setpoints', 1.5, Setpoint((0.0, 0.0, 1.5)), (
+    Setpoint((1.0, 0.6, 1.8)),
+    Setpoint((1.0, -0.8, 1.2), yaw=NORTH - 0.6),
+    Setpoint((-0.8, -0.6, 1.5), yaw=NORTH + 0.4),
+))
+LAND_ON_PAD = Scenario('land_on_pad', 1.5, Setpoint((0.0, 0.0, 1.5)),
+                       landing=Landing((0.8, -0.5)))
+DEMO = Scenario('demo', 1.5, Setpoint((0.0, 0.0, 1.5), hold=3.0), SETPOINTS.setpoints,
+                Landing((0.6, 0.4)))
+SCENARIOS = {s.name: s for s in (HOLD, SETPOINTS, LAND_ON_PAD, DEMO)}
+
+
+@dataclass(frozen=True)
+class Configs:
+    """The params files the graph is started with."""
+
+    ground: Path = default_config_path('ground_trinocular.yaml')
+    onboard: Path = default_config_path('onboard.yaml')
+    world: Path = default_config_path('sim_world.yaml')
+    controller: Path = default_config_path('fuzzy_controller.yaml')
+    relay: Path = default_config_path('mavlink_relay.yaml')
+
+
+class MissionError(RuntimeError):
+    """The mission cannot go on; str() says why."""
+
+
+def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
+        startup_timeout: float = 90.0) -> FlightLog:
+    """Start the graph, fly `scenario`, stop the graph; node logs go to out_dir/logs.
+
+    A step that fails ends the mission (the vehicle is told to land where it is) and
+    is named in the log's `failure`.
+    """
+    return _Mission(scenario, out_dir / 'logs', configs).run(startup_timeout)
+
+
+def free_port() -> int:
+    """A TCP port nobody listens on now, for the vehicle's MAVLink endpoint."""
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+class _Recorder:
+    """The runner's ROS side: records every pose source, the commands, the frame stamps
+    and the relay's status; publishes the setpoint (re-sent at 2 Hz); calls services."""
+
+    def __init__(self, first_camera: str) -> None:
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node('scenario_runner', context=self.context)
+        self.rows: dict[str, list] = {k: [] for k in ('truth', 'ground', 'onboard', 'odom',
+                                                      'commands', 'ground_frames',
+                                                      'onboard_frames')}
+        self.latest: dict[str, tuple[int, np.ndarray, float]] = {}
+        self.relay: dict[str, str] = {}
+        self.reporting: set[str] = set()        # nodes heard on /diagnostics
+        node = self.node
+        for name, topic in (('truth', 'truth/pose'), ('ground', 'ground/pose'),
+                            ('onboard', 'onboard/pose')):
+            node.create_subscription(PoseStamped, topic, lambda m, n=name: self._on_pose(n, m), 100)
+        node.create_subscription(Odometry, 'autopilot/odom', self._on_odom, 100)
+        node.create_subscription(TwistStamped, 'cmd_vel', self._on_cmd_vel, 100)
+        for name, topic in (('ground_frames', f'{first_camera}/camera_info'),
+                            ('onboard_frames', 'onboard/camera_info')):
+            node.create_subscription(CameraInfo, topic, lambda m, n=name: self.rows[n].append(
+                stamp_to_ns(m.header.stamp)), 100)
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 100)
+        self.setpoint_pub = node.create_publisher(PoseStamped, 'setpoint', 10)
+        self.setpoint: PoseStamped | None = None
+        node.create_timer(0.5, self._send_setpoint)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self.thread.join(timeout=5.0)
+
+    def _on_pose(self, name: str, msg: PoseStamped) -> None:
+        position, q = msg_to_pose(msg)
+        stamp, yaw = stamp_to_ns(msg.header.stamp), yaw_of(q)
+        self.rows[name].append((stamp, time.time_ns(), *position, yaw))
+        self.latest[name] = (stamp, position, yaw)
+
+    def _on_odom(self, msg: Odometry) -> None:
+        position, q, _, _ = msg_to_odometry(msg)
+        self.rows['odom'].append((stamp_to_ns(msg.header.stamp), time.time_ns(), *position,
+                                  yaw_of(q)))
+
+    def _on_cmd_vel(self, msg: TwistStamped) -> None:
+        linear, angular = msg_to_twist(msg)
+        self.rows['commands'].append((stamp_to_ns(msg.header.stamp), *linear, angular[2]))
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            self.reporting.add(status.name)
+            if status.name == RELAY:
+                self.relay = {kv.key: kv.value for kv in status.values}
+
+    def set_setpoint(self, sp: Setpoint) -> None:
+        msg = PoseStamped(header=Header(stamp=self.node.get_clock().now().to_msg(),
+                                        frame_id='world'))
+        msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = map(float, sp.position)
+        msg.pose.orientation.z, msg.pose.orientation.w = math.sin(sp.yaw / 2), math.cos(sp.yaw / 2)
+        self.setpoint = msg
+        self.setpoint_pub.publish(msg)
+
+    def _send_setpoint(self) -> None:
+        if self.setpoint is not None:
+            self.setpoint_pub.publish(self.setpoint)
+
+    def subscriptions(self, node_name: str) -> tuple[str, ...]:
+        """The topics a node of the graph subscribes to, as the ROS graph reports them
+        (none while the node is not discovered)."""
+        try:
+            found = self.node.get_subscriber_names_and_types_by_node(node_name, '/')
+        except NodeNameNonExistentError:
+            return ()
+        return tuple(sorted(name for name, _ in found))
+
+    def call(self, srv_type, name: str, request, timeout: float, attempts: int = 1):
+        """Call a service and wait for its answer; MissionError if none or unsuccessful.
+
+        With `attempts` > 1 (idempotent services only) an unanswered request is sent
+        again: a server that has just been restarted may still be matched to its
+        predecessor's request.
+        """
+        for attempt in range(attempts):
+            client = self.node.create_client(srv_type, name)
+            try:
+                if not client.wait_for_service(timeout_sec=timeout):
+                    raise MissionError(f'{name}: service not available')
+                future = client.call_async(request)
+                deadline = time.monotonic() + timeout
+                while not future.done() and time.monotonic() < deadline:
+                    time.sleep(0.02)
+                response = future.result() if future.done() else None
+            finally:
+                self.node.destroy_client(client)
+            if response is not None:
+                break
+        else:
+            raise MissionError(f'{name}: no answer within {timeout:.0f} s '
+                               f'({attempts} attempt{"s" if attempts > 1 else ""})')
+        if not response.success:
+            raise MissionError(f'{name}: {response.message}')
+        return response
+
+    def log(self, scenario: Scenario, **events) -> FlightLog:
+        rows = {k: list(v) for k, v in self.rows.items()}
+        return FlightLog(scenario.name, *(PoseTrack.from_rows(rows[k]) for k in
+                                          ('truth', 'ground', 'onboard', 'odom')),
+                         CommandTrack.from_rows(rows['commands']),
+                         np.array(rows['ground_frames'], np.int64),
+                         np.array(rows['onboard_frames'], np.int64), **events)
+
+
+class _Mission:
+    """One flight of a scenario: processes, mission steps, events."""
+
+    def __init__(self, scenario: Scenario, log_dir: Path, configs: Configs) -> None:
+        self.scenario, self.log_dir, self.configs = scenario, log_dir, configs
+        self.procs: dict[str, subprocess.Popen] = {}      # running
+        self.retired: list[tuple[str, subprocess.Popen]] = []   # stopped on purpose
+        self.controller_source = ''
+        self.events: dict = dict(setpoints=[], pad=scenario.landing.pad if scenario.landing
+                                 else None)
+
+    def run(self, startup_timeout: float) -> FlightLog:
+        cameras = list(read_params_file(self.configs.ground)['cameras.names'])
+        self.rec = _Recorder(cameras[0])
+        try:
+            self._start_graph(cameras, startup_timeout)
+            self._fly(startup_timeout)
+        except MissionError as err:
+            self.events['failure'] = str(err)
+            self._land_anyway()
+        finally:
+            graph.stop(list(self.procs.values()))
+            log = self.rec.log(self.scenario, **self.events)
+            self.rec.close()
+        log.exit_codes = {label: proc.returncode
+                          for label, proc in [*self.retired, *self.procs.items()]}
+        return log
+
+    # ---------------------------------------------------------------- graph
+    def _start(self, label: str, name: str, args: list[str]) -> None:
+        self.procs[label] = graph.start(name, args, self.log_dir, label)
+
+    def _start_graph(self, cameras: list[str], timeout: float) -> None:
+        """Everything but the onboard pose node; the relay once the vehicle serves."""
+        c = self.configs
+        port = free_port()
+        self._start('sim_world', 'sim_world', [
+            '--params-file', str(c.ground), '--params-file', str(c.onboard),
+            '--params-file', str(c.world), '-p', f'vehicle.connection:=tcpin:127.0.0.1:{port}'])
+        for label, proc in zip([*cameras, 'trinocular_pose_node'],
+                               ground_graph(c.ground, cameras, self.log_dir)):
+            self.procs[label] = proc
+        self._start_controller('ground')
+        self._wait('sim_world', lambda: '/sim_world' in self.rec.reporting, timeout)
+        self._start('mavlink_relay_node', 'mavlink_relay_node', [
+            '--params-file', str(c.relay), '-p', f'connection:=tcp:127.0.0.1:{port}',
+            '-p', 'allow_arming:=true',
+            '-p', f'takeoff_height:={self.scenario.takeoff_height:.3f}'])
+
+    def _start_controller(self, source: str) -> None:
+        """(Re)start fuzzy_controller_node flying on `source`'s pose (ground or onboard)."""
+        old = self.procs.pop('fuzzy_controller_node', None)
+        if old is not None:
+            graph.stop([old])
+            self.retired.append((f'fuzzy_controller_node on {self.controller_source}/pose', old))
+        self.controller_source = source
+        self._start('fuzzy_controller_node', 'fuzzy_controller_node', [
+            '--params-file', str(self.configs.controller),
+            '-p', f'controller.pose_topic:={source}/pose', '-p', 'controller.command_frame:=world'])
+
+    def _check_alive(self) -> None:
+        for label, proc in self.procs.items():
+            if proc.poll() is not None:
+                raise MissionError(f'{label} exited with status {proc.returncode} '
+                                   f'(log: {self.log_dir / label}.log)')
+
+    def _wait(self, what: str, predicate, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            self._check_alive()
+            if time.monotonic() > deadline:
+                raise MissionError(f'timed out after {timeout:.0f} s waiting for {what}')
+            time.sleep(0.05)
+
+    # ---------------------------------------------------------------- mission
+    def _fly(self, startup_timeout: float) -> None:
+        rec, s = self.rec, self.scenario
+        self._wait('the relay to connect and the vehicle to be ready to arm',
+                   lambda: rec.relay.get('link') == 'connected'
+                   and rec.relay.get('prearm_ok') == 'True', startup_timeout)
+        self._wait('ground/pose', lambda: self._fresh('ground'), startup_timeout)
+        rec.call(Trigger, 'set_guided', Trigger.Request(), 15.0)
+        rec.call(SetBool, 'arm', SetBool.Request(data=True), 15.0)
+        self.events['takeoff_ns'] = time.time_ns()
+        rec.call(Trigger, 'takeoff', Trigger.Request(), 30.0)
+        self._enable_controller()
+        self._fly_to('hold', s.hold, 'ground')
+        if s.setpoints or s.landing is not None:
+            self._start_onboard()
+        for k, sp in enumerate(s.setpoints, 1):
+            self._fly_to(f'setpoint {k}', sp, 'ground')
+        if s.landing is not None:
+            self._land_on_pad(s.landing)
+        else:
+            self._land()
+
+    def _enable_controller(self, on: bool = True) -> None:
+        """Enable (disable) the controller once the ROS graph shows it on its pose input."""
+        topic = f'/{self.controller_source}/pose'
+        self._wait(f'fuzzy_controller_node on {topic}',
+                   lambda: topic in self.rec.subscriptions('fuzzy_controller_node'), 30.0)
+        self.rec.call(SetBool, '/fuzzy_controller_node/enable', SetBool.Request(data=on), 5.0,
+                      attempts=6)
+
+    def _fresh(self, source: str, max_age: float = 0.5) -> bool:
+        latest = self.rec.latest.get(source)
+        return latest is not None and time.time_ns() - latest[0] < max_age * 1e9
+
+    def _fly_to(self, name: str, sp: Setpoint, source: str) -> None:
+        """Send `sp`; return once the `source` vision pose has stayed within its
+        tolerance for `sp.hold` s (judged on the poses' stamps)."""
+        event = SetpointEvent(name, source, (*map(float, sp.position), float(sp.yaw)),
+                              time.time_ns())
+        self.events['setpoints'].append(event)
+        self.rec.set_setpoint(sp)
+        target = np.array(sp.position)
+
+        def held() -> bool:
+            if not self._fresh(source):
+                event.settled_ns = None
+                return False
+            stamp, position, yaw = self.rec.latest[source]
+            if (np.linalg.norm(position - target) > sp.tolerance
+                    or abs(math.remainder(yaw - sp.yaw, 2 * math.pi)) > sp.yaw_tolerance):
+                event.settled_ns = None
+            elif event.settled_ns is None:
+                event.settled_ns = stamp
+            elif stamp - event.settled_ns >= sp.hold * 1e9:
+                event.reached_ns = stamp
+            return event.reached_ns is not None
+
+        self._wait(f'{name} {sp.position} on {source}/pose', held, sp.timeout)
+        event.controller_inputs = self.rec.subscriptions('fuzzy_controller_node')
+
+    def _start_onboard(self) -> None:
+        """Start homography_pose_node at the hover, initialised (init.*) at the ground
+        station's mean pose over the last second, and wait for its first pose."""
+        rows = np.array(self.rec.rows['ground'][-60:], dtype=float)
+        recent = rows[rows[:, 0] >= rows[-1, 0] - 1e9]
+        x, y, z = recent[:, 2:5].mean(axis=0)
+        yaw = math.atan2(np.sin(recent[:, 5]).mean(), np.cos(recent[:, 5]).mean())
+        self.events['onboard_start_ns'] = time.time_ns()
+        self._start('homography_pose_node', 'homography_pose_node', [
+            '--params-file', str(self.configs.onboard), '-p', 'init.mode:=pose',
+            '-p', f'init.position:=[{x:.4f}, {y:.4f}, {z:.4f}]',
+            '-p', f'init.rpy:=[0.0, 0.0, {yaw:.5f}]'])
+        self._wait('the first onboard/pose', lambda: self._fresh('onboard'), 30.0)
+
+    def _land_on_pad(self, landing: Landing) -> None:
+        """Fly over the pad on the onboard pose, descend, then LAND."""
+        self._start_controller('onboard')
+        yaw = self.rec.latest['onboard'][2]
+        over = Setpoint((*landing.pad, landing.approach), yaw, landing.hold, landing.tolerance)
+        self._enable_controller()
+        self._fly_to('pad approach', over, 'onboard')
+        self._fly_to('pad descent', replace(over, position=(*landing.pad, landing.final)),
+                     'onboard')
+        self._land()
+
+    def _land(self) -> None:
+        """Stop servoing, then the autopilot's LAND where the vehicle is."""
+        self._enable_controller(False)
+        self._land_now()
+
+    def _land_now(self) -> None:
+        """LAND, and wait until the autopilot has touched down and disarmed."""
+        self.events['land_ns'] = time.time_ns()
+        self.rec.call(Trigger, 'land', Trigger.Request(), 15.0)
+        self._wait('the vehicle to land and disarm', lambda: self.rec.relay.get('armed') == 'False',
+                   30.0)
+        self.events['landed_ns'] = time.time_ns()
+
+    def _land_anyway(self) -> None:
+        """After a failure in the air: LAND where the vehicle is, best effort."""
+        if self.rec.relay.get('armed') != 'True':
+            return
+        try:
+            self._land_now()
+        except MissionError:
+            pass

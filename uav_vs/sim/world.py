@@ -1,0 +1,85 @@
+"""The closed-loop world (chapter section 5): what the cameras see of the simulated vehicle.
+
+The vehicle is the MAVLink simulator (uav_vs.sim.mavlink_vehicle), flying in its local
+NED frame with home on the ground at the origin. `world` (ENU, z up) has that same
+origin, so one point in space has one set of coordinates for the autopilot (NED), the
+ground cameras' calibration (eq 16) and the onboard camera's ground plane z = 0
+(section 4); the conversion is uav_vs.autopilot.frames. The simulated vehicle has no
+attitude dynamics: it stays level, and base_link's attitude is its heading alone.
+
+`SimWorld` samples the vehicle's true state and renders the ground trinocular cameras
+(uav_vs.sim.ground_scene, section 3) and the down-looking onboard camera
+(uav_vs.sim.onboard_scene, section 4) at that state.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from uav_vs.autopilot.frames import ned_to_enu, yaw_ned_to_enu
+from uav_vs.sim.ground_scene import GroundScene, Pose
+from uav_vs.sim.mavlink_vehicle import MavlinkVehicle, Truth
+from uav_vs.sim.onboard_scene import OnboardScene
+from uav_vs.vision.body_pose import quaternion_xyzw
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """The vehicle's truth in ROS frames: base_link (FLU) in world (ENU)."""
+
+    time: float               # time.monotonic() of the sample, s
+    position: np.ndarray      # (3,) m
+    velocity: np.ndarray      # (3,) m/s
+    yaw: float                # heading, rad (0 = east, counter-clockwise)
+    R: np.ndarray             # (3, 3) base_link -> world
+    armed: bool
+    mode: str
+    flying: bool
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        """Orientation of base_link in world, (x, y, z, w)."""
+        return quaternion_xyzw(self.R)
+
+
+def vehicle_state(truth: Truth) -> VehicleState:
+    """The simulator's NED truth as base_link in world (REP-103/105)."""
+    yaw = float(yaw_ned_to_enu(truth.yaw))
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return VehicleState(truth.time, ned_to_enu(truth.position), ned_to_enu(truth.velocity), yaw,
+                        R, truth.armed, truth.mode, truth.flying)
+
+
+class SimWorld:
+    """The vehicle's true state and the ground and onboard cameras' views of it."""
+
+    def __init__(self, vehicle: MavlinkVehicle, ground: GroundScene, onboard: OnboardScene,
+                 onboard_min_height: float) -> None:
+        self.vehicle = vehicle
+        self.ground = ground
+        self.onboard = onboard
+        self.onboard_min_height = onboard_min_height
+        self._t0 = vehicle.truth().time
+
+    def state(self) -> VehicleState:
+        return vehicle_state(self.vehicle.truth())
+
+    def ground_images(self, state: VehicleState) -> list[np.ndarray]:
+        """One BGR image per ground camera, in `cameras.names` order (section 3)."""
+        images, _ = self.ground.render(Pose(state.time - self._t0, state.position, state.yaw,
+                                            state.R))
+        return images
+
+    def onboard_height(self, state: VehicleState) -> float:
+        """Height of the onboard camera's optical centre above the ground plane, m."""
+        return float((state.position + state.R @ self.onboard.camera_to_body[:3, 3])[2])
+
+    def onboard_image(self, state: VehicleState) -> np.ndarray | None:
+        """The down-looking camera's BGR image (section 4); None while the camera is lower
+        than `onboard_min_height` (on the ground it would look into the ground plane)."""
+        if self.onboard_height(state) < self.onboard_min_height:
+            return None
+        return self.onboard.render(state.R, state.position)
+
+    def close(self) -> None:
+        self.vehicle.stop()
