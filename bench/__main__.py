@@ -11,6 +11,8 @@ SUITES = {
     'onboard': ['onboard_homography', 'onboard_pose', 'onboard_template'],
     'fuzzy': ['fuzzy'],
     'mavlink': ['mavlink', 'mavlink_relay'],
+    'bags': ['bags'],
+    'graph': ['graph_latency'],
 }
 
 

@@ -118,7 +118,7 @@ def _commands(fig: Figure, log: FlightLog, t0: int) -> None:
     axes = fig.subplots(4, 1, sharex=True)
     fig.suptitle(f'{log.scenario}: cmd_vel of the fuzzy controller (world ENU)')
     c = log.commands
-    t = _seconds(c.stamps, t0)
+    t = _seconds(c.received, t0)
     values = (c.linear[:, 0], c.linear[:, 1], c.linear[:, 2], c.yaw_rate)
     labels = ('vx (east), m/s', 'vy (north), m/s', 'vz (up), m/s', 'yaw rate, rad/s')
     for ax, v, label in zip(axes, values, labels):

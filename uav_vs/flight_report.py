@@ -11,7 +11,8 @@ events; `FlightReport.from_log` scores it:
 - each setpoint (section 5: hold, move through setpoints): the true distance to it
   over the hold the mission accepted, as judged by the vision pose it flew on;
 - the landing: the true touchdown point's horizontal distance to the pad;
-- latencies: a vision pose's arrival at the recorder minus its image's stamp.
+- latencies: a vision pose's arrival at the recorder minus its image's stamp, and a
+  command's (cmd_vel computed from a vision pose carries its image's stamp) the same.
 
 No ROS here: the runner (uav_vs.scenario) fills the log, `save` / `load` keep it as .npz.
 """
@@ -53,19 +54,22 @@ class PoseTrack:
 
 @dataclass
 class CommandTrack:
-    """cmd_vel as published: stamps (ns), linear (n, 3), m/s, yaw rate (n,), rad/s."""
+    """cmd_vel as published: stamps and arrival times (ns), linear (n, 3), m/s, yaw rate
+    (n,), rad/s. A command computed from a pose carries that pose's stamp."""
 
     stamps: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    received: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     linear: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     yaw_rate: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @classmethod
-    def from_rows(cls, rows: list[tuple[int, float, float, float, float]]) -> 'CommandTrack':
-        """From (stamp_ns, vx, vy, vz, yaw_rate) rows."""
+    def from_rows(cls, rows: list[tuple[int, int, float, float, float, float]]) -> 'CommandTrack':
+        """From (stamp_ns, received_ns, vx, vy, vz, yaw_rate) rows."""
         if not rows:
             return cls()
         a = np.array(rows, dtype=object)
-        return cls(a[:, 0].astype(np.int64), a[:, 1:4].astype(float), a[:, 4].astype(float))
+        return cls(a[:, 0].astype(np.int64), a[:, 1].astype(np.int64), a[:, 2:5].astype(float),
+                   a[:, 5].astype(float))
 
 
 @dataclass
@@ -121,7 +125,8 @@ class FlightLog:
             tracks = {name: PoseTrack(*(z[f'{name}.{k}'] for k in
                                         ('stamps', 'received', 'positions', 'yaws')))
                       for name in ('truth', *SOURCES)}
-            commands = CommandTrack(*(z[f'commands.{k}'] for k in ('stamps', 'linear', 'yaw_rate')))
+            commands = CommandTrack(*(z[f'commands.{k}'] for k in
+                                      ('stamps', 'received', 'linear', 'yaw_rate')))
             meta = json.loads(str(z['meta']))
             frames = z['ground_frames'], z['onboard_frames']
         meta['setpoints'] = [SetpointEvent(**{**s, 'target': tuple(s['target']),
@@ -165,14 +170,27 @@ class LandingScore:
 
 
 @dataclass(frozen=True)
+class CommandScore:
+    """cmd_vel computed from a vision pose (stamped with its image's stamp): how long from
+    the image's stamp to the command's arrival, the whole graph's latency."""
+
+    commands: int                    # all cmd_vel received
+    from_images: int                 # ... that carry a camera frame's stamp
+    latency_median_ms: float
+    latency_p95_ms: float
+
+
+@dataclass(frozen=True)
 class FlightReport:
     scenario: str
     sources: dict[str, SourceScore]
+    commands: CommandScore
     setpoints: list[SetpointScore]
     landing: LandingScore | None
     ground_frames: int
     onboard_frames: int
     duration_s: float                # takeoff command to landed (or the end of the log)
+    window: str                      # what the sources were scored over
     failure: str
     exit_codes: dict[str, int]       # of every process of the graph
 
@@ -193,14 +211,16 @@ class FlightReport:
                                    float(math.hypot(p[0] - log.pad[0], p[1] - log.pad[1])))
         start = log.takeoff_ns or (int(log.truth.stamps[0]) if len(log.truth) else 0)
         end = log.landed_ns or (int(log.truth.stamps[-1]) if len(log.truth) else start)
-        return cls(log.scenario, sources, setpoints, landing, frames['ground'],
-                   frames['onboard'], (end - start) * 1e-9, log.failure, log.exit_codes)
+        window = 'takeoff to LAND' if log.takeoff_ns is not None else 'the whole log'
+        return cls(log.scenario, sources, score_commands(log), setpoints, landing,
+                   frames['ground'], frames['onboard'], (end - start) * 1e-9, window,
+                   log.failure, log.exit_codes)
 
     def summary(self) -> str:
         lines = [f'scenario {self.scenario}: ' + (f'FAILED: {self.failure}' if self.failure
                                                   else f'completed in {self.duration_s:.1f} s')]
         frames = {'ground': self.ground_frames, 'onboard': self.onboard_frames}
-        lines.append('pose sources against simulator truth (takeoff to LAND):')
+        lines.append(f'pose sources against simulator truth ({self.window}):')
         for name, s in self.sources.items():
             if not s.samples:
                 lines.append(f'  {name:8s} no samples')
@@ -211,7 +231,13 @@ class FlightReport:
             lines.append(f'  {name:8s} {s.samples} poses{rate}: position RMSE '
                          f'{s.position_rmse_m * 100:.2f} cm (max {s.position_max_m * 100:.2f} cm),'
                          f' yaw RMSE {s.yaw_rmse_deg:.2f} deg{latency}')
-        lines.append('setpoints (true error over the hold):')
+        c = self.commands
+        if c.from_images:
+            lines.append(f'cmd_vel: {c.commands} commands, {c.from_images} computed from a vision '
+                         f'pose; image stamp to command: median {c.latency_median_ms:.1f} ms, '
+                         f'p95 {c.latency_p95_ms:.1f} ms')
+        if self.setpoints:
+            lines.append('setpoints (true error over the hold):')
         for s in self.setpoints:
             x, y, z, yaw = s.target
             where = f'({x:+.2f}, {y:+.2f}, {z:.2f}) m, yaw {math.degrees(yaw):.0f} deg'
@@ -266,6 +292,22 @@ def score_source(track: PoseTrack, truth: PoseTrack, exact: bool, start_ns: int,
     latency = (track.received[keep] - track.stamps[keep]) * 1e-6
     return SourceScore(int(keep.sum()), rms(dp), float(dp.max()), rms(dyaw),
                        float(np.median(latency)), float(np.percentile(latency, 95)))
+
+
+def command_latencies(log: FlightLog) -> np.ndarray:
+    """Arrival minus stamp (ms) of the commands stamped with a camera frame's stamp, those
+    computed from the vision pose of that frame."""
+    c = log.commands
+    from_images = np.isin(c.stamps, np.concatenate([log.ground_frames, log.onboard_frames]))
+    return (c.received[from_images] - c.stamps[from_images]) * 1e-6
+
+
+def score_commands(log: FlightLog) -> CommandScore:
+    latency = command_latencies(log)
+    if not len(latency):
+        return CommandScore(len(log.commands.stamps), 0, math.nan, math.nan)
+    return CommandScore(len(log.commands.stamps), len(latency), float(np.median(latency)),
+                        float(np.percentile(latency, 95)))
 
 
 def score_setpoint(event: SetpointEvent, log: FlightLog) -> SetpointScore:

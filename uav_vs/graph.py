@@ -22,11 +22,11 @@ def executable(name: str) -> str:
 
 
 def start(name: str, ros_args: list[str], log_dir: Path, label: str | None = None,
-          env: dict[str, str] | None = None) -> subprocess.Popen:
-    """Start `name --ros-args ros_args`, stdout and stderr to log_dir/<label>.log."""
+          env: dict[str, str] | None = None, args: list[str] = ()) -> subprocess.Popen:
+    """Start `name args --ros-args ros_args`, stdout and stderr to log_dir/<label>.log."""
     log_dir.mkdir(parents=True, exist_ok=True)
     log = open(log_dir / f'{label or name}.log', 'wb')
-    argv = [executable(name), '--ros-args', *ros_args] if ros_args else [executable(name)]
+    argv = [executable(name), *args, *(['--ros-args', *ros_args] if ros_args else [])]
     proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
                             env={**os.environ, **(env or {})})
     log.close()

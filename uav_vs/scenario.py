@@ -20,32 +20,23 @@ estimate; it records them, with both vision poses and the commands, into a
 `FlightLog` that uav_vs.flight_report scores.
 """
 import math
+import shutil
 import socket
 import subprocess
-import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped, TwistStamped
-from nav_msgs.msg import Odometry
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import NodeNameNonExistentError
-from sensor_msgs.msg import CameraInfo
-from std_msgs.msg import Header
 from std_srvs.srv import SetBool, Trigger
 
 from uav_vs import graph
-from uav_vs.flight_report import CommandTrack, FlightLog, PoseTrack, SetpointEvent
+from uav_vs.flight_recorder import FlightRecorder, MissionError
+from uav_vs.flight_report import FlightLog, SetpointEvent
 from uav_vs.ground_replay import ground_graph
-from uav_vs.ros.convert import msg_to_odometry, msg_to_pose, msg_to_twist, stamp_to_ns, yaw_of
 from uav_vs.vision.ground_config import default_config_path, read_params_file
 
 NORTH = math.pi / 2          # ENU heading of the vehicle at boot (MAVLink yaw 0 = north)
-RELAY = '/mavlink_relay_node'
 
 
 @dataclass(frozen=True)
@@ -108,18 +99,29 @@ class Configs:
     relay: Path = default_config_path('mavlink_relay.yaml')
 
 
-class MissionError(RuntimeError):
-    """The mission cannot go on; str() says why."""
-
-
 def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
-        startup_timeout: float = 90.0) -> FlightLog:
-    """Start the graph, fly `scenario`, stop the graph; node logs go to out_dir/logs.
+        startup_timeout: float = 90.0, record: bool = True) -> FlightLog:
+    """Start the graph, fly `scenario`, stop the graph; node logs go to out_dir/logs and,
+    with `record`, the flight's topics (recorded_topics) to the bag out_dir/bag.
 
     A step that fails ends the mission (the vehicle is told to land where it is) and
     is named in the log's `failure`.
     """
-    return _Mission(scenario, out_dir / 'logs', configs).run(startup_timeout)
+    bag = out_dir / 'bag' if record else None
+    if bag is not None and bag.exists():
+        shutil.rmtree(bag)
+    return _Mission(scenario, out_dir / 'logs', configs, bag).run(startup_timeout)
+
+
+def recorded_topics(cameras: list[str]) -> list[str]:
+    """What a flight's bag holds: every camera's JPEG images and calibration, the truth,
+    both vision poses, the ground landmarks, the setpoints, the commands and the
+    autopilot's estimate; enough to replay the flight through the open-loop graph."""
+    per_camera = [f'{cam}/{topic}' for cam in [*cameras, 'onboard']
+                  for topic in ('image_raw/compressed', 'camera_info')]
+    return [*per_camera, *(f'{cam}/landmarks' for cam in cameras), 'truth/pose',
+            'ground/pose', 'ground/landmarks', 'onboard/pose', 'setpoint', 'cmd_vel',
+            'autopilot/odom']
 
 
 def free_port() -> int:
@@ -129,129 +131,12 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-class _Recorder:
-    """The runner's ROS side: records every pose source, the commands, the frame stamps
-    and the relay's status; publishes the setpoint (re-sent at 2 Hz); calls services."""
-
-    def __init__(self, first_camera: str) -> None:
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node('scenario_runner', context=self.context)
-        self.rows: dict[str, list] = {k: [] for k in ('truth', 'ground', 'onboard', 'odom',
-                                                      'commands', 'ground_frames',
-                                                      'onboard_frames')}
-        self.latest: dict[str, tuple[int, np.ndarray, float]] = {}
-        self.relay: dict[str, str] = {}
-        self.reporting: set[str] = set()        # nodes heard on /diagnostics
-        node = self.node
-        for name, topic in (('truth', 'truth/pose'), ('ground', 'ground/pose'),
-                            ('onboard', 'onboard/pose')):
-            node.create_subscription(PoseStamped, topic, lambda m, n=name: self._on_pose(n, m), 100)
-        node.create_subscription(Odometry, 'autopilot/odom', self._on_odom, 100)
-        node.create_subscription(TwistStamped, 'cmd_vel', self._on_cmd_vel, 100)
-        for name, topic in (('ground_frames', f'{first_camera}/camera_info'),
-                            ('onboard_frames', 'onboard/camera_info')):
-            node.create_subscription(CameraInfo, topic, lambda m, n=name: self.rows[n].append(
-                stamp_to_ns(m.header.stamp)), 100)
-        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 100)
-        self.setpoint_pub = node.create_publisher(PoseStamped, 'setpoint', 10)
-        self.setpoint: PoseStamped | None = None
-        node.create_timer(0.5, self._send_setpoint)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-        self.thread.join(timeout=5.0)
-
-    def _on_pose(self, name: str, msg: PoseStamped) -> None:
-        position, q = msg_to_pose(msg)
-        stamp, yaw = stamp_to_ns(msg.header.stamp), yaw_of(q)
-        self.rows[name].append((stamp, time.time_ns(), *position, yaw))
-        self.latest[name] = (stamp, position, yaw)
-
-    def _on_odom(self, msg: Odometry) -> None:
-        position, q, _, _ = msg_to_odometry(msg)
-        self.rows['odom'].append((stamp_to_ns(msg.header.stamp), time.time_ns(), *position,
-                                  yaw_of(q)))
-
-    def _on_cmd_vel(self, msg: TwistStamped) -> None:
-        linear, angular = msg_to_twist(msg)
-        self.rows['commands'].append((stamp_to_ns(msg.header.stamp), *linear, angular[2]))
-
-    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
-        for status in msg.status:
-            self.reporting.add(status.name)
-            if status.name == RELAY:
-                self.relay = {kv.key: kv.value for kv in status.values}
-
-    def set_setpoint(self, sp: Setpoint) -> None:
-        msg = PoseStamped(header=Header(stamp=self.node.get_clock().now().to_msg(),
-                                        frame_id='world'))
-        msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = map(float, sp.position)
-        msg.pose.orientation.z, msg.pose.orientation.w = math.sin(sp.yaw / 2), math.cos(sp.yaw / 2)
-        self.setpoint = msg
-        self.setpoint_pub.publish(msg)
-
-    def _send_setpoint(self) -> None:
-        if self.setpoint is not None:
-            self.setpoint_pub.publish(self.setpoint)
-
-    def subscriptions(self, node_name: str) -> tuple[str, ...]:
-        """The topics a node of the graph subscribes to, as the ROS graph reports them
-        (none while the node is not discovered)."""
-        try:
-            found = self.node.get_subscriber_names_and_types_by_node(node_name, '/')
-        except NodeNameNonExistentError:
-            return ()
-        return tuple(sorted(name for name, _ in found))
-
-    def call(self, srv_type, name: str, request, timeout: float, attempts: int = 1):
-        """Call a service and wait for its answer; MissionError if none or unsuccessful.
-
-        With `attempts` > 1 (idempotent services only) an unanswered request is sent
-        again: a server that has just been restarted may still be matched to its
-        predecessor's request.
-        """
-        for attempt in range(attempts):
-            client = self.node.create_client(srv_type, name)
-            try:
-                if not client.wait_for_service(timeout_sec=timeout):
-                    raise MissionError(f'{name}: service not available')
-                future = client.call_async(request)
-                deadline = time.monotonic() + timeout
-                while not future.done() and time.monotonic() < deadline:
-                    time.sleep(0.02)
-                response = future.result() if future.done() else None
-            finally:
-                self.node.destroy_client(client)
-            if response is not None:
-                break
-        else:
-            raise MissionError(f'{name}: no answer within {timeout:.0f} s '
-                               f'({attempts} attempt{"s" if attempts > 1 else ""})')
-        if not response.success:
-            raise MissionError(f'{name}: {response.message}')
-        return response
-
-    def log(self, scenario: Scenario, **events) -> FlightLog:
-        rows = {k: list(v) for k, v in self.rows.items()}
-        return FlightLog(scenario.name, *(PoseTrack.from_rows(rows[k]) for k in
-                                          ('truth', 'ground', 'onboard', 'odom')),
-                         CommandTrack.from_rows(rows['commands']),
-                         np.array(rows['ground_frames'], np.int64),
-                         np.array(rows['onboard_frames'], np.int64), **events)
-
-
 class _Mission:
     """One flight of a scenario: processes, mission steps, events."""
 
-    def __init__(self, scenario: Scenario, log_dir: Path, configs: Configs) -> None:
-        self.scenario, self.log_dir, self.configs = scenario, log_dir, configs
+    def __init__(self, scenario: Scenario, log_dir: Path, configs: Configs,
+                 bag: Path | None) -> None:
+        self.scenario, self.log_dir, self.configs, self.bag = scenario, log_dir, configs, bag
         self.procs: dict[str, subprocess.Popen] = {}      # running
         self.retired: list[tuple[str, subprocess.Popen]] = []   # stopped on purpose
         self.controller_source = ''
@@ -260,7 +145,7 @@ class _Mission:
 
     def run(self, startup_timeout: float) -> FlightLog:
         cameras = list(read_params_file(self.configs.ground)['cameras.names'])
-        self.rec = _Recorder(cameras[0])
+        self.rec = FlightRecorder(cameras[0])
         try:
             self._start_graph(cameras, startup_timeout)
             self._fly(startup_timeout)
@@ -269,20 +154,24 @@ class _Mission:
             self._land_anyway()
         finally:
             graph.stop(list(self.procs.values()))
-            log = self.rec.log(self.scenario, **self.events)
+            log = self.rec.log(self.scenario.name, **self.events)
             self.rec.close()
         log.exit_codes = {label: proc.returncode
                           for label, proc in [*self.retired, *self.procs.items()]}
         return log
 
     # ---------------------------------------------------------------- graph
-    def _start(self, label: str, name: str, args: list[str]) -> None:
-        self.procs[label] = graph.start(name, args, self.log_dir, label)
+    def _start(self, label: str, name: str, ros_args: list[str], args: list[str] = ()) -> None:
+        self.procs[label] = graph.start(name, ros_args, self.log_dir, label, args=args)
 
     def _start_graph(self, cameras: list[str], timeout: float) -> None:
-        """Everything but the onboard pose node; the relay once the vehicle serves."""
+        """The recorder, then everything but the onboard pose node; the relay once the
+        vehicle serves."""
         c = self.configs
         port = free_port()
+        if self.bag is not None:
+            self._start('bag_record', 'bag_record', [], args=['-o', str(self.bag),
+                                                               *recorded_topics(cameras)])
         self._start('sim_world', 'sim_world', [
             '--params-file', str(c.ground), '--params-file', str(c.onboard),
             '--params-file', str(c.world), '-p', f'vehicle.connection:=tcpin:127.0.0.1:{port}'])
@@ -361,7 +250,7 @@ class _Mission:
         event = SetpointEvent(name, source, (*map(float, sp.position), float(sp.yaw)),
                               time.time_ns())
         self.events['setpoints'].append(event)
-        self.rec.set_setpoint(sp)
+        self.rec.set_setpoint(sp.position, sp.yaw)
         target = np.array(sp.position)
 
         def held() -> bool:

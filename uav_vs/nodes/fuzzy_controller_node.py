@@ -8,9 +8,12 @@ Tracking mode (`controller.mode: tracking`): subscribes `onboard/target`
 (PolygonStamped from target_tracker_node, the centre is the last point) and turns the
 target's column offset from `controller.image_center_x` into a yaw rate.
 
-Publishes `cmd_vel` (geometry_msgs/TwistStamped) every 1 / `controller.rate` s, with
-header.frame_id `controller.world_frame` (ENU) or `controller.body_frame` (FLU) per
-`controller.command_frame`, and /diagnostics. The command is zero while the node is
+Publishes `cmd_vel` (geometry_msgs/TwistStamped) as soon as each measurement has been
+evaluated, stamped with that measurement's stamp (so image-to-command latency can be
+measured), and from the `controller.rate` timer whenever no measurement has produced a
+command for a period (the last command again, or zero, stamped now when zero); the
+header.frame_id is `controller.world_frame` (ENU) or `controller.body_frame` (FLU) per
+`controller.command_frame`. Also /diagnostics. The command is zero while the node is
 disabled (std_srvs/SetBool `~/enable`; `controller.enabled` is the start state), without
 a setpoint, or when the last measurement arrived more than `controller.timeout` ago.
 Limits (`controller.max_*`) apply to every command.
@@ -18,6 +21,7 @@ Limits (`controller.max_*`) apply to every command.
 import math
 import time
 
+from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PolygonStamped, PoseStamped, TwistStamped
 from rclpy.node import Node
 from std_msgs.msg import Header
@@ -37,7 +41,8 @@ PARAMS = [
     Param('controller.target_topic', T.STRING, 'onboard/target', 'tracked target (tracking mode)'),
     Param('controller.image_center_x', T.DOUBLE, 319.5,
           'image column the target is steered to (tracking mode), px', 0.0, 100000.0),
-    Param('controller.rate', T.DOUBLE, 20.0, 'cmd_vel publishing rate, Hz', 1.0, 500.0),
+    Param('controller.rate', T.DOUBLE, 20.0,
+          'least cmd_vel rate (a command also follows every measurement), Hz', 1.0, 500.0),
     Param('controller.timeout', T.DOUBLE, 0.25,
           'a measurement older than this gives zero command, s', 0.01, 10.0),
     Param('controller.command_frame', T.STRING, 'world', 'cmd_vel frame: world (ENU) or body (FLU)',
@@ -75,6 +80,9 @@ class FuzzyControllerNode(Node):
         self.center_x = p['controller.image_center_x']
         self.counts = dict(commands=0, active=0, measurements=0, malformed=0)
         self.reason = 'no cycle yet'
+        self.period = 1.0 / p['controller.rate']
+        self.measured: Time | None = None     # stamp of the last measurement taken
+        self.measured_at = -math.inf           # when a command was last sent for it
         self.pub = self.create_publisher(TwistStamped, 'cmd_vel', 10)
         if tracking:
             self.create_subscription(PolygonStamped, p['controller.target_topic'],
@@ -85,7 +93,7 @@ class FuzzyControllerNode(Node):
         self.create_service(SetBool, '~/enable', self.on_enable)
         self.warnings = ThrottledWarnings(self)
         self.diag = Diagnostics(self)
-        self.create_timer(1.0 / p['controller.rate'], self.on_cycle)
+        self.create_timer(self.period, self.on_cycle)
         self.create_timer(p['controller.diagnostics_period'], self.publish_diagnostics)
 
     def on_pose(self, msg: PoseStamped) -> None:
@@ -94,7 +102,7 @@ class FuzzyControllerNode(Node):
         position, q = msg_to_pose(msg)
         if self.loop.on_pose(time.monotonic(), stamp_to_ns(msg.header.stamp) * 1e-9,
                              position, yaw_of(q)):
-            self.counts['measurements'] += 1
+            self.on_measurement(msg.header.stamp)
         else:
             self._malformed('pose: non-finite position or orientation')
 
@@ -115,7 +123,7 @@ class FuzzyControllerNode(Node):
             return
         if self.loop.on_target(time.monotonic(), stamp_to_ns(msg.header.stamp) * 1e-9,
                                self.center_x - points[-1, 0]):
-            self.counts['measurements'] += 1
+            self.on_measurement(msg.header.stamp)
         else:
             self._malformed('target: non-finite centre')
 
@@ -126,9 +134,22 @@ class FuzzyControllerNode(Node):
         self.get_logger().info(f'controller {response.message}')
         return response
 
+    def on_measurement(self, stamp: Time) -> None:
+        """The command computed from a new measurement, sent at once."""
+        self.counts['measurements'] += 1
+        self.measured, self.measured_at = stamp, time.monotonic()
+        self.publish_command()
+
     def on_cycle(self) -> None:
+        """The fixed-rate floor: a command every period even without measurements, which
+        turns to zero once they are stale."""
+        if time.monotonic() - self.measured_at >= self.period:
+            self.publish_command()
+
+    def publish_command(self) -> None:
         cmd, self.reason = self.loop.command(time.monotonic())
-        header = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.cmd_frame)
+        stamp = self.measured if not self.reason else self.get_clock().now().to_msg()
+        header = Header(stamp=stamp, frame_id=self.cmd_frame)
         self.pub.publish(twist_to_msg(cmd[:3], [0.0, 0.0, cmd[3]], header))
         self.counts['commands'] += 1
         self.counts['active'] += not self.reason

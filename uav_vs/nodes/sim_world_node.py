@@ -10,21 +10,24 @@ the three params files:
         --params-file config/onboard.yaml --params-file config/sim_world.yaml
 
 Publishes, every frame with the stamp of the instant the truth was sampled:
-`camK/image_raw` (sensor_msgs/Image bgr8, sensor-data QoS) and `camK/camera_info` for
-each ground camera, `onboard/image_raw` and `onboard/camera_info` (not while the
-onboard camera is below `onboard.min_height`), `truth/pose` (PoseStamped, base_link in
-`world` ENU, for evaluation only) and /diagnostics.
+`camK/image_raw` (sensor_msgs/Image bgr8, sensor-data QoS), `camK/image_raw/compressed`
+(JPEG of `world.jpeg_quality`, encoded only while someone subscribes, e.g. a bag
+recorder) and `camK/camera_info` for each ground camera, the same three under `onboard/`
+(not while the onboard camera is below `onboard.min_height`), `truth/pose`
+(PoseStamped, base_link in `world` ENU, for evaluation only) and /diagnostics.
 """
 import time
 
+import numpy as np
+from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from uav_vs.nodes.homography_pose_node import ONBOARD_PARAMS
-from uav_vs.ros.convert import bgr_to_image, camera_info, pose_to_msg
+from uav_vs.ros.convert import bgr_to_compressed, bgr_to_image, camera_info, pose_to_msg
 from uav_vs.ros.ground_params import declare_cameras, declare_landmarks
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, run
 from uav_vs.ros.params import Param, T, declare
@@ -32,6 +35,7 @@ from uav_vs.sim.ground_scene import GroundScene
 from uav_vs.sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
 from uav_vs.sim.onboard_scene import OnboardScene
 from uav_vs.sim.world import SimWorld, VehicleState
+from uav_vs.vision.camera import Camera
 from uav_vs.vision.ground_config import load_ground_config
 from uav_vs.vision.onboard_config import load_onboard_config
 
@@ -59,8 +63,29 @@ PARAMS = [
           'no onboard image while the camera is lower than this above the ground, m', 0.05, 100.0),
     Param('world.frame_id', T.STRING, 'world', 'frame of truth/pose (ENU)'),
     Param('world.seed', T.INTEGER, 0, 'sensor noise seed', 0, 2**31 - 1),
+    Param('world.jpeg_quality', T.INTEGER, 90, 'JPEG quality of image_raw/compressed', 1, 100),
     Param('world.diagnostics_period', T.DOUBLE, 1.0, 'diagnostics period, s', 0.05, 60.0),
 ]
+
+
+class CameraOutput:
+    """One camera's topics: `image_raw`, `image_raw/compressed` (encoded only while it has
+    a subscriber) and `camera_info`, all with one header per frame."""
+
+    def __init__(self, node: Node, prefix: str, camera: Camera, jpeg_quality: int) -> None:
+        self.frame_id, self.quality = camera.frame_id, jpeg_quality
+        self.info = camera.camera_info_fields()
+        self.raw = node.create_publisher(Image, f'{prefix}/image_raw', qos_profile_sensor_data)
+        self.compressed = node.create_publisher(CompressedImage, f'{prefix}/image_raw/compressed',
+                                                qos_profile_sensor_data)
+        self.info_pub = node.create_publisher(CameraInfo, f'{prefix}/camera_info', 10)
+
+    def publish(self, image: np.ndarray, stamp: Time) -> None:
+        header = Header(stamp=stamp, frame_id=self.frame_id)
+        self.raw.publish(bgr_to_image(image, header))
+        if self.compressed.get_subscription_count():
+            self.compressed.publish(bgr_to_compressed(image, header, self.quality))
+        self.info_pub.publish(camera_info(self.info, header))
 
 
 class SimWorldNode(Node):
@@ -88,14 +113,9 @@ class SimWorldNode(Node):
         self.world = SimWorld(vehicle.start(), ground_scene, onboard_scene,
                               p['onboard.min_height'])
 
-        self.cameras = [(cam, self.create_publisher(Image, f'{cam.name}/image_raw',
-                                                    qos_profile_sensor_data),
-                         self.create_publisher(CameraInfo, f'{cam.name}/camera_info', 10))
-                        for cam in ground.cameras]
-        self.onboard_camera = onboard.camera
-        self.onboard_pub = self.create_publisher(Image, 'onboard/image_raw',
-                                                 qos_profile_sensor_data)
-        self.onboard_info_pub = self.create_publisher(CameraInfo, 'onboard/camera_info', 10)
+        quality = p['world.jpeg_quality']
+        self.cameras = [CameraOutput(self, cam.name, cam, quality) for cam in ground.cameras]
+        self.onboard_camera = CameraOutput(self, 'onboard', onboard.camera, quality)
         self.truth_pub = self.create_publisher(PoseStamped, 'truth/pose', 50)
         self.counts = dict(ground_frames=0, onboard_frames=0, onboard_too_low=0)
         self.render_ms = dict(ground_render_ms=float('nan'), onboard_render_ms=float('nan'))
@@ -122,10 +142,8 @@ class SimWorldNode(Node):
         start = time.perf_counter()
         images = self.world.ground_images(state)
         self.render_ms['ground_render_ms'] = round((time.perf_counter() - start) * 1e3, 2)
-        for (cam, image_pub, info_pub), image in zip(self.cameras, images):
-            cam_header = Header(stamp=header.stamp, frame_id=cam.frame_id)
-            image_pub.publish(bgr_to_image(image, cam_header))
-            info_pub.publish(camera_info(cam.camera_info_fields(), cam_header))
+        for camera, image in zip(self.cameras, images):
+            camera.publish(image, header.stamp)
         self.counts['ground_frames'] += 1
 
     def on_onboard(self) -> None:
@@ -136,10 +154,7 @@ class SimWorldNode(Node):
             self.counts['onboard_too_low'] += 1
             return
         self.render_ms['onboard_render_ms'] = round((time.perf_counter() - start) * 1e3, 2)
-        cam_header = Header(stamp=header.stamp, frame_id=self.onboard_camera.frame_id)
-        self.onboard_pub.publish(bgr_to_image(image, cam_header))
-        self.onboard_info_pub.publish(camera_info(self.onboard_camera.camera_info_fields(),
-                                                  cam_header))
+        self.onboard_camera.publish(image, header.stamp)
         self.counts['onboard_frames'] += 1
 
     def publish_diagnostics(self) -> None:

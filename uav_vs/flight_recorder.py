@@ -1,0 +1,148 @@
+"""The ROS side of a flight (closed loop or a replay): every pose source, the commands,
+the frame stamps and the relay's status recorded into a FlightLog, the setpoint published,
+services called.
+
+Used by uav_vs.scenario (missions in closed loop) and uav_vs.flight_replay (a recorded
+flight through the open-loop graph).
+"""
+import math
+import threading
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, TwistStamped
+from nav_msgs.msg import Odometry
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import NodeNameNonExistentError
+from sensor_msgs.msg import CameraInfo
+from std_msgs.msg import Header
+
+from uav_vs.flight_report import CommandTrack, FlightLog, PoseTrack
+from uav_vs.ros.convert import msg_to_odometry, msg_to_pose, msg_to_twist, stamp_to_ns, yaw_of
+
+RELAY = '/mavlink_relay_node'
+
+
+class MissionError(RuntimeError):
+    """The mission cannot go on; str() says why."""
+
+
+class FlightRecorder:
+    """A mission's ROS side: records every pose source, the commands, the frame stamps
+    and the relay's status; publishes the setpoint (re-sent at 2 Hz); calls services."""
+
+    def __init__(self, first_camera: str) -> None:
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node('scenario_runner', context=self.context)
+        self.rows: dict[str, list] = {k: [] for k in ('truth', 'ground', 'onboard', 'odom',
+                                                      'commands', 'ground_frames',
+                                                      'onboard_frames')}
+        self.latest: dict[str, tuple[int, np.ndarray, float]] = {}
+        self.relay: dict[str, str] = {}
+        self.reporting: set[str] = set()        # nodes heard on /diagnostics
+        node = self.node
+        for name, topic in (('truth', 'truth/pose'), ('ground', 'ground/pose'),
+                            ('onboard', 'onboard/pose')):
+            node.create_subscription(PoseStamped, topic, lambda m, n=name: self._on_pose(n, m), 100)
+        node.create_subscription(Odometry, 'autopilot/odom', self._on_odom, 100)
+        node.create_subscription(TwistStamped, 'cmd_vel', self._on_cmd_vel, 100)
+        for name, topic in (('ground_frames', f'{first_camera}/camera_info'),
+                            ('onboard_frames', 'onboard/camera_info')):
+            node.create_subscription(CameraInfo, topic, lambda m, n=name: self.rows[n].append(
+                stamp_to_ns(m.header.stamp)), 100)
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 100)
+        self.setpoint_pub = node.create_publisher(PoseStamped, 'setpoint', 10)
+        self.setpoint: PoseStamped | None = None
+        node.create_timer(0.5, self._send_setpoint)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self.thread.join(timeout=5.0)
+
+    def _on_pose(self, name: str, msg: PoseStamped) -> None:
+        position, q = msg_to_pose(msg)
+        stamp, yaw = stamp_to_ns(msg.header.stamp), yaw_of(q)
+        self.rows[name].append((stamp, time.time_ns(), *position, yaw))
+        self.latest[name] = (stamp, position, yaw)
+
+    def _on_odom(self, msg: Odometry) -> None:
+        position, q, _, _ = msg_to_odometry(msg)
+        self.rows['odom'].append((stamp_to_ns(msg.header.stamp), time.time_ns(), *position,
+                                  yaw_of(q)))
+
+    def _on_cmd_vel(self, msg: TwistStamped) -> None:
+        linear, angular = msg_to_twist(msg)
+        self.rows['commands'].append((stamp_to_ns(msg.header.stamp), time.time_ns(), *linear,
+                                      angular[2]))
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            self.reporting.add(status.name)
+            if status.name == RELAY:
+                self.relay = {kv.key: kv.value for kv in status.values}
+
+    def set_setpoint(self, position: tuple[float, float, float], yaw: float) -> None:
+        msg = PoseStamped(header=Header(stamp=self.node.get_clock().now().to_msg(),
+                                        frame_id='world'))
+        msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = map(float, position)
+        msg.pose.orientation.z, msg.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+        self.setpoint = msg
+        self.setpoint_pub.publish(msg)
+
+    def _send_setpoint(self) -> None:
+        if self.setpoint is not None:
+            self.setpoint_pub.publish(self.setpoint)
+
+    def subscriptions(self, node_name: str) -> tuple[str, ...]:
+        """The topics a node of the graph subscribes to, as the ROS graph reports them
+        (none while the node is not discovered)."""
+        try:
+            found = self.node.get_subscriber_names_and_types_by_node(node_name, '/')
+        except NodeNameNonExistentError:
+            return ()
+        return tuple(sorted(name for name, _ in found))
+
+    def call(self, srv_type, name: str, request, timeout: float, attempts: int = 1):
+        """Call a service and wait for its answer; MissionError if none or unsuccessful.
+
+        With `attempts` > 1 (idempotent services only) an unanswered request is sent
+        again: a server that has just been restarted may still be matched to its
+        predecessor's request.
+        """
+        for attempt in range(attempts):
+            client = self.node.create_client(srv_type, name)
+            try:
+                if not client.wait_for_service(timeout_sec=timeout):
+                    raise MissionError(f'{name}: service not available')
+                future = client.call_async(request)
+                deadline = time.monotonic() + timeout
+                while not future.done() and time.monotonic() < deadline:
+                    time.sleep(0.02)
+                response = future.result() if future.done() else None
+            finally:
+                self.node.destroy_client(client)
+            if response is not None:
+                break
+        else:
+            raise MissionError(f'{name}: no answer within {timeout:.0f} s '
+                               f'({attempts} attempt{"s" if attempts > 1 else ""})')
+        if not response.success:
+            raise MissionError(f'{name}: {response.message}')
+        return response
+
+    def log(self, scenario: str, **events) -> FlightLog:
+        rows = {k: list(v) for k, v in self.rows.items()}
+        return FlightLog(scenario, *(PoseTrack.from_rows(rows[k]) for k in
+                                          ('truth', 'ground', 'onboard', 'odom')),
+                         CommandTrack.from_rows(rows['commands']),
+                         np.array(rows['ground_frames'], np.int64),
+                         np.array(rows['onboard_frames'], np.int64), **events)
