@@ -1,7 +1,9 @@
 """Fuzzy controllers from config/fuzzy_controller.yaml closed around the velocity plant:
-settling, no oscillation, bounded commands, integral action, safety and config errors."""
+settling, no oscillation, bounded commands, integral action (the PID-like layer
+config/fuzzy_controller_pid.yaml), safety and config errors."""
 import copy
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +15,29 @@ from uav_vs.control.controllers import (PoseController, TrackingController, conf
 from uav_vs.sim.velocity_plant import VelocityPlant
 
 YAML = Path(__file__).resolve().parents[1] / 'config' / 'fuzzy_controller.yaml'
+PID_YAML = YAML.with_name('fuzzy_controller_pid.yaml')
 CFG = load_config(YAML)
+
+
+def flatten(d, prefix=''):
+    """Nested params to flat dotted names, as ROS 2 declares them."""
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from flatten(v, f'{prefix}{k}.')
+        else:
+            yield f'{prefix}{k}', tuple(v) if isinstance(v, list) else v
+
+
+def load_layered(*paths):
+    """Params files layered as `--params-file a --params-file b` layers them: a later
+    file overrides single parameters (leaves) of an earlier one."""
+    flat = {}
+    for path in paths:
+        flat.update(flatten(yaml.safe_load(path.read_text())['/**']['ros__parameters']))
+    return config_from_params(flat)
+
+
+PID_CFG = load_layered(YAML, PID_YAML)     # z with the PID-like 45-rule base
 DT = 0.02
 # Bounds stated for the default tuning: within 6 s every axis is inside 5 cm / 2 deg
 # and stays there; the error never crosses zero by more than 1 cm / 0.5 deg.
@@ -65,28 +89,42 @@ def test_tracking_controller_centres_a_target_30deg_off():
     assert plant.pose[3] == pytest.approx(np.radians(30), abs=np.radians(0.3))
 
 
-def pid_config(cfg):
-    """45-rule PID-like base on z: error (5 sets) x rate (3) x integral (3)."""
-    cfg = copy.deepcopy(cfg)
-    z = cfg['axes']['z']
-    e5, r3 = ['NB', 'NS', 'ZE', 'PS', 'PB'], ['N', 'ZE', 'P']
-    out = z['command']['sets']
-    z['error'] = {'gain': 0.7, 'sets': e5, 'apexes': [-1.0, -0.2, 0.0, 0.2, 1.0]}
-    z['rate'] = {'gain': 0.5, 'sets': r3, 'apexes': [-1.0, 0.0, 1.0]}
-    z['integral'] = {'gain': 1.0, 'sets': r3, 'apexes': [-1.0, 0.0, 1.0]}
-    z['integral_limit'] = 0.6
-    z['rules'] = [f'IF error IS {e} AND rate IS {r} AND integral IS {i} THEN command IS '
-                  f'{out[min(6, max(0, 3 + a + b + c))]}'
-                  for a, e in zip(range(-2, 3), e5) for b, r in zip(range(-1, 2), r3)
-                  for c, i in zip(range(-1, 2), r3)]
-    return cfg
+def test_pid_layer_gives_z_three_inputs_and_45_rules():
+    # config/fuzzy_controller_pid.yaml over the main file: z becomes error x rate x
+    # integral (5 x 3 x 3 sets, every combination once), the rest stays as it was.
+    ctl = PoseController.from_config(PID_CFG)
+    z = ctl.axes[2]
+    assert [v.name for v in z.system.inputs] == ['error', 'rate', 'integral']
+    assert [len(v.sets) for v in z.system.inputs] == [5, 3, 3]
+    assert len(z.system.rules) == 45 and z.has_integral and z.integral_limit == 0.6
+    assert len({r.antecedent for r in z.system.rules}) == 45
+    # The table the file's comment states: command index = 3 + offsets, saturated.
+    for r in z.system.rules:
+        (_, e), (_, d), (_, i) = r.antecedent
+        assert r.consequent == min(6, max(0, 3 + (e - 2) + (d - 1) + (i - 1)))
+    assert ctl.bank.n_inputs == 3
+    assert [len(a.system.inputs) for a in ctl.axes] == [2, 2, 3, 2]
+    base = CFG['axes']['z']
+    assert (z.limit, z.rate_filter, z.out_gain) == (base['limit'], base['rate_filter'], base['command']['gain'])
+    for axis in ('x', 'y', 'yaw'):
+        assert PID_CFG['axes'][axis] == CFG['axes'][axis]
+    assert PID_CFG['tracking'] == CFG['tracking'] and PID_CFG['inference'] == CFG['inference']
+
+
+@pytest.mark.parametrize('path', [YAML, PID_YAML], ids=['main', 'pid'])
+def test_every_config_key_is_commented(path):
+    """Each `key:` line has a comment on it or on the line above."""
+    lines = path.read_text().splitlines()
+    for i, line in enumerate(lines):
+        m = re.match(r'\s*"?(\w+)"?:', line)
+        if m and m.group(1) != 'ros__parameters' and not line.startswith('/**'):
+            assert '#' in line or lines[i - 1].strip().startswith('#'), f'{path.name}:{i + 1}: {line}'
 
 
 def test_integral_input_removes_the_offset_a_steady_drift_leaves():
     drift = (0.0, 0.0, -0.15, 0.0)                       # e.g. a sinking autopilot velocity loop
     setpoint = np.array([0.0, 0.0, 1.0, 0.0])
-    pid = pid_config(CFG)
-    assert len(pid['axes']['z']['rules']) == 45
+    pid = PID_CFG                                        # config/fuzzy_controller_pid.yaml
     pd_err, _ = fly(PoseController.from_config(CFG), VelocityPlant(DT, pose=(0, 0, 1, 0), drift=drift), setpoint, 20)
     pid_err, pid_cmd = fly(PoseController.from_config(pid), VelocityPlant(DT, pose=(0, 0, 1, 0), drift=drift), setpoint, 20)
     assert abs(pd_err[-1, 2]) > 0.05                     # PD: steady offset
@@ -120,14 +158,6 @@ def test_yaw_error_is_wrapped():
 
 def test_flat_ros_parameters_give_the_same_config():
     params = yaml.safe_load(YAML.read_text())['/**']['ros__parameters']
-
-    def flatten(d, prefix=''):
-        for k, v in d.items():
-            if isinstance(v, dict):
-                yield from flatten(v, f'{prefix}{k}.')
-            else:
-                yield f'{prefix}{k}', tuple(v) if isinstance(v, list) else v
-
     assert config_from_params(dict(flatten(params))) == CFG
 
 
@@ -147,7 +177,7 @@ def test_unknown_set_or_variable_in_yaml_fails_with_one_line():
 def test_step_matches_a_per_axis_restatement():
     # rate filter, clamped integral, yaw wrapping and the fail-safes, one axis at a time
     # through each axis's own system, against the batched step (PID-like z axis included).
-    ctl = PoseController.from_config(pid_config(CFG))
+    ctl = PoseController.from_config(PID_CFG)
     assert ctl.bank.linear_firing and ctl.bank.closed_form      # the shortcuts carry the config
     rng = np.random.default_rng(3)
     prev, rate, integral = [np.nan] * 4, [0.0] * 4, [0.0] * 4

@@ -1,8 +1,10 @@
 """fuzzy_controller_node as a process (console script + config/fuzzy_controller.yaml).
 
 Truth: the frame geometry worked out by hand (a vehicle facing north with its setpoint
-to the east must be commanded to its right in FLU), and the node's documented
-fail-safe rules (zero command when stale, disabled or fed non-finite poses).
+to the east must be commanded to its right in FLU; a target left of the image centre
+must turn the vehicle left), and the node's documented fail-safe rules (zero command
+from the first cycle after the measurement is older than the timeout, when disabled or
+fed non-finite poses).
 """
 import math
 import subprocess
@@ -11,17 +13,26 @@ import time
 
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped, TwistStamped
+from geometry_msgs.msg import Point32, Polygon, PolygonStamped, PoseStamped, TwistStamped
 from std_msgs.msg import Header
 from std_srvs.srv import SetBool
 
 from conftest import REPO, wait_for
 from uav_vs.graph import executable
-from uav_vs.ros.convert import msg_to_twist, ns_to_stamp, pose_to_msg
+from uav_vs.ros.convert import msg_to_twist, ns_to_stamp, pose_to_msg, stamp_to_ns
 
 CONFIG = REPO / 'config' / 'fuzzy_controller.yaml'
+PID_CONFIG = REPO / 'config' / 'fuzzy_controller_pid.yaml'
 NODE = '/fuzzy_controller_node'
 NORTH = [0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4)]     # yaw 90 deg, xyzw
+TIMEOUT, PERIOD = 0.3, 1 / 50.0     # controller.timeout and 1 / controller.rate in `start`
+# The first zero command must leave the node within one cycle of the timeout expiring
+# (the 50 Hz floor timer is what notices it). SLACK covers what lies between the probe's
+# last publish and the node's check: the pose's way to the node (~1 ms over shared
+# memory) and the wake-up of the node's timer and executor on a loaded 2-core machine
+# (a few scheduler slices of ~10 ms, at worst). 0.06 s = 3 cycles: a node that lagged
+# several cycles, or timed the timeout from anything but the last pose, fails.
+SLACK = 0.06
 
 
 class Probe:
@@ -34,8 +45,10 @@ class Probe:
         node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 50)
         self.pose = node.create_publisher(PoseStamped, '/ground/pose', 10)
         self.setpoint = node.create_publisher(PoseStamped, '/setpoint', 10)
+        self.target = node.create_publisher(PolygonStamped, '/onboard/target', 10)
         self.enable = node.create_client(SetBool, NODE + '/enable')
         self.stop = threading.Event()
+        self.last_sent = math.nan           # wall time (the node's clock) of the last measurement sent
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         for s in msg.status:
@@ -43,28 +56,74 @@ class Probe:
                 self.diag = {'message': s.message, **{kv.key: kv.value for kv in s.values}}
 
     def publish_poses(self, position, quaternion, rate=20.0, frame='world'):
+        return self._publish_until_stopped(
+            self.pose, lambda header: pose_to_msg(position, quaternion, header), rate, frame)
+
+    def publish_targets(self, centre_x, rate=20.0, half=40.0, y=240.0):
+        """target_tracker_node's message: four corners, then the centre as the last point."""
+        def target(header):
+            corners = [(-half, -half), (half, -half), (half, half), (-half, half)]
+            points = [Point32(x=centre_x() + dx, y=y + dy, z=0.0) for dx, dy in corners]
+            return PolygonStamped(header=header, polygon=Polygon(
+                points=[*points, Point32(x=centre_x(), y=y, z=0.0)]))
+        return self._publish_until_stopped(self.target, target, rate, 'onboard_camera_optical')
+
+    def _publish_until_stopped(self, publisher, make, rate, frame):
+        """Publish make(header) at `rate`, stamped 1 s + k / rate, until `stop` is set."""
         def loop():
             k = 0
             while not self.stop.is_set():
                 header = Header(stamp=ns_to_stamp(1_000_000_000 + int(k * 1e9 / rate)),
                                 frame_id=frame)
-                self.pose.publish(pose_to_msg(position, quaternion, header))
+                msg = make(header)
+                self.last_sent = time.time()
+                publisher.publish(msg)
                 k += 1
                 time.sleep(1.0 / rate)
         thread = threading.Thread(target=loop, daemon=True)
         thread.start()
         return thread
 
+    def stop_publishing(self, thread) -> tuple[float, int]:
+        """Stop the measurement stream: (wall time of its last message, commands so far)."""
+        self.stop.set()
+        thread.join()
+        self.stop.clear()
+        return self.last_sent, len(self.cmds)
+
     def last_cmd(self):
         return msg_to_twist(self.cmds[-1][1]) if self.cmds else None
 
 
-def start(processes, *overrides):
-    args = ['--params-file', str(CONFIG), '-p', 'controller.rate:=50.0',
-            '-p', 'controller.timeout:=0.3', '-p', 'controller.diagnostics_period:=0.1']
+def is_zero(msg: TwistStamped) -> bool:
+    return not any(v for part in msg_to_twist(msg) for v in part)
+
+
+def start(processes, *overrides, params_files=(CONFIG,)):
+    args = [a for f in params_files for a in ('--params-file', str(f))]
+    args += ['-p', f'controller.rate:={1 / PERIOD}', '-p', f'controller.timeout:={TIMEOUT}',
+             '-p', 'controller.diagnostics_period:=0.1']
     for kv in overrides:
         args += ['-p', kv]
     return processes('fuzzy_controller_node', args, label='fuzzy')
+
+
+def assert_zero_from_one_cycle_after_timeout(probe, last_sent, mark):
+    """The first zero command after probe.cmds[mark:] began went out within one cycle
+    (plus SLACK) of the timeout expiring after the last measurement was sent, not
+    before the timeout; every command after it is zero."""
+    assert wait_for(lambda: any(is_zero(m) for _, m in probe.cmds[mark:]), 5)
+    cmds = probe.cmds[mark:]
+    first = next(k for k, (_, m) in enumerate(cmds) if is_zero(m))
+    # A zero command is stamped with the node's clock when it is sent (the wall clock,
+    # as the probe's last_sent); the stop is measured from the probe's last publish, so
+    # the measured delay is the true one (from the node receiving it) plus the transport.
+    delay = stamp_to_ns(cmds[first][1].header.stamp) * 1e-9 - last_sent
+    assert TIMEOUT - 1e-3 <= delay <= TIMEOUT + PERIOD + SLACK, delay
+    seen = cmds[first][0]
+    assert wait_for(lambda: probe.cmds[-1][0] > seen + 0.5, 5)    # 25 more cycles at 50 Hz
+    after = probe.cmds[mark + first:]
+    assert len(after) >= 10 and all(is_zero(m) for _, m in after), [msg_to_twist(m) for _, m in after]
 
 
 def test_body_commands_then_zero_when_stale_and_when_disabled(ros_node, processes):
@@ -82,17 +141,14 @@ def test_body_commands_then_zero_when_stale_and_when_disabled(ros_node, processe
     assert abs(linear[0]) < 1e-6 and abs(linear[2]) < 1e-6 and angular[2] < 0
     assert math.hypot(linear[0], linear[1]) <= 1.0 + 1e-9 and abs(angular[2]) <= 0.8 + 1e-9
     assert probe.cmds[-1][1].header.frame_id == 'base_link'
+    # A command computed from a pose carries that pose's stamp (1 s + k / 20 Hz).
+    stamp = stamp_to_ns(probe.cmds[-1][1].header.stamp) - 1_000_000_000
+    assert 0 <= stamp < 600e9 and stamp % 50_000_000 == 0, stamp
 
-    probe.stop.set()
-    poses.join()
-    stopped = time.monotonic()
+    last_sent, mark = probe.stop_publishing(poses)
+    assert_zero_from_one_cycle_after_timeout(probe, last_sent, mark)
     assert wait_for(lambda: probe.diag.get('message', '').startswith('measurement stale'), 5)
-    zero_from = next(t for t, m in probe.cmds if t > stopped and not any(msg_to_twist(m)[0]))
-    # Timeout 0.3 s + one 20 ms cycle, with slack for the loaded test machine.
-    assert zero_from - stopped < 0.3 + 0.02 + 0.5
-    assert all(not any(msg_to_twist(m)[0]) for t, m in probe.cmds if t > zero_from)
 
-    probe.stop.clear()
     poses = probe.publish_poses([0.0, 0.0, 1.0], NORTH)
     assert wait_for(lambda: probe.diag.get('message') == 'commanding', 5), probe.diag
     assert probe.enable.wait_for_service(10)
@@ -104,6 +160,56 @@ def test_body_commands_then_zero_when_stale_and_when_disabled(ros_node, processe
     assert all(not any(msg_to_twist(m)[0]) and msg_to_twist(m)[1][2] == 0.0
                for t, m in probe.cmds if t > mark)
     probe.stop.set()
+    assert proc.poll() is None
+
+
+def test_tracking_mode_turns_towards_the_target_then_zero_when_stale(ros_node, processes):
+    # Image centre column 319.5; a target left of it (smaller column) must turn the
+    # vehicle left (positive yaw rate, FLU), one right of it right; never any linear
+    # velocity. The error is 150 px, about half the controller's range.
+    probe = Probe(ros_node)
+    proc = start(processes, 'controller.mode:=tracking', 'controller.enabled:=true',
+                 'controller.command_frame:=body')
+    assert wait_for(lambda: probe.target.get_subscription_count() > 0, 30)
+    column = [319.5 - 150.0]
+    targets = probe.publish_targets(lambda: column[0])
+    assert wait_for(lambda: probe.diag.get('message') == 'commanding', 10), probe.diag
+    assert wait_for(lambda: probe.cmds and msg_to_twist(probe.cmds[-1][1])[1][2] > 0.1, 5)
+    mark = len(probe.cmds)
+    column[0] = 319.5 + 150.0
+    assert wait_for(lambda: msg_to_twist(probe.cmds[-1][1])[1][2] < -0.1, 5)
+    for _, m in probe.cmds[mark - 5:]:
+        linear, angular = msg_to_twist(m)
+        assert linear.tolist() == [0.0, 0.0, 0.0] and angular[:2].tolist() == [0.0, 0.0]
+        assert abs(angular[2]) <= 0.6 + 1e-9                   # fuzzy.tracking.limit
+        assert m.header.frame_id == 'base_link'
+    # Commands follow the targets, stamped with their stamps (1 s + k / 20 Hz).
+    stamp = stamp_to_ns(probe.cmds[-1][1].header.stamp) - 1_000_000_000
+    assert 0 <= stamp < 600e9 and stamp % 50_000_000 == 0, stamp
+
+    last_sent, mark = probe.stop_publishing(targets)
+    assert_zero_from_one_cycle_after_timeout(probe, last_sent, mark)
+    assert wait_for(lambda: probe.diag.get('message', '').startswith('measurement stale'), 5)
+    assert proc.poll() is None
+
+
+def test_pid_layer_gives_z_integral_action(ros_node, processes):
+    # config/fuzzy_controller_pid.yaml over the main file: a constant 0.1 m z error gives
+    # a climb rate that grows as the error integral builds (0.18 m/s at first, 0.34 m/s
+    # after 2 s); the PD-like base gives a constant 0.17 m/s. x, y and yaw are on target.
+    probe = Probe(ros_node)
+    proc = start(processes, 'controller.enabled:=true', params_files=(CONFIG, PID_CONFIG))
+    assert wait_for(lambda: probe.setpoint.get_subscription_count() > 0, 30)
+    probe.setpoint.publish(pose_to_msg([0.0, 0.0, 1.1], [0, 0, 0, 1.0], Header(frame_id='world')))
+    poses = probe.publish_poses([0.0, 0.0, 1.0], [0, 0, 0, 1.0])
+    assert wait_for(lambda: probe.diag.get('message') == 'commanding', 10), probe.diag
+    early = msg_to_twist(probe.cmds[-1][1])[0][2]
+    assert wait_for(lambda: msg_to_twist(probe.cmds[-1][1])[0][2] > early + 0.1, 5), \
+        (early, msg_to_twist(probe.cmds[-1][1]))
+    linear, angular = msg_to_twist(probe.cmds[-1][1])
+    assert 0 < linear[2] <= 0.5 and abs(linear[0]) < 1e-9 and abs(linear[1]) < 1e-9
+    assert abs(angular[2]) < 1e-9
+    probe.stop_publishing(poses)
     assert proc.poll() is None
 
 

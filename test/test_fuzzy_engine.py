@@ -1,12 +1,17 @@
 """Mamdani engine: equivalence with scikit-fuzzy, analytic membership and defuzzification
 checks, brute-force integration for the operators scikit-fuzzy lacks, and error handling."""
+import copy
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from uav_vs.control.controllers import PoseController, TrackingController, load_config
 from uav_vs.control.fuzzy import FuzzyBank, FuzzySystem, gaussian, partition, trapezoid, triangle
-from uav_vs.control.fuzzy_reference import skfuzzy_evaluate, to_skfuzzy
+from uav_vs.control.fuzzy_reference import skfuzzy_evaluate, skfuzzy_evaluate_many, to_skfuzzy
+
+CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'fuzzy_controller.yaml'
 
 E7 = ['NB', 'NM', 'NS', 'ZE', 'PS', 'PM', 'PB']
 R5 = ['NB', 'NS', 'ZE', 'PS', 'PB']
@@ -21,31 +26,98 @@ def pd_config(**ops):
             'rules': rules, 'resolution': 101, **ops}
 
 
-def input_grid(n):
-    """n x n inputs over and beyond both ranges (inputs saturate at the range ends)."""
+def input_grid(n, dims=2):
+    """n ** dims inputs over and beyond every range (inputs saturate at the range ends)."""
     g = np.linspace(-1.2, 1.2, n)
-    return np.array([(a, b) for a in g for b in g])
+    return np.stack(np.meshgrid(*[g] * dims, indexing='ij'), axis=-1).reshape(-1, dims)
+
+
+def skfuzzy_outputs(system, inputs):
+    """scikit-fuzzy's ControlSystemSimulation on every row of inputs (one array-input run)."""
+    with warnings.catch_warnings():      # scikit-fuzzy's own numpy deprecation warnings
+        warnings.simplefilter('ignore', DeprecationWarning)
+        return skfuzzy_evaluate_many(to_skfuzzy(system), system, inputs)
 
 
 def engine_and_reference(cfg, inputs):
     system = FuzzySystem.from_config(cfg)
     y, ok = FuzzyBank([system] * len(inputs)).evaluate(inputs)
-    sim = to_skfuzzy(system)
-    with warnings.catch_warnings():      # scikit-fuzzy's own numpy deprecation warnings
-        warnings.simplefilter('ignore', DeprecationWarning)
-        ref = np.array([skfuzzy_evaluate(sim, system, x) for x in inputs])
-    return system, y, ok, ref
+    return system, y, ok, skfuzzy_outputs(system, inputs)
 
 
-# scikit-fuzzy takes ~40 ms per evaluation of this 35-rule system here, so the grids are
-# 21 x 21 (441 points) and 11 x 11 to keep the file well under a minute.
-@pytest.mark.parametrize('ops,n', [({'and': 'min'}, 21), ({'and': 'product'}, 11)])
-def test_centroid_equals_skfuzzy_on_dense_grid(ops, n):
+def config_systems():
+    """The distinct fuzzy systems of config/fuzzy_controller.yaml (the x, y, z, yaw and
+    tracking axes) and of its PID-like layer config/fuzzy_controller_pid.yaml (z)."""
+    cfg = load_config(CONFIG)
+    pid = copy.deepcopy(cfg)
+    pid['axes']['z'].update(load_config(CONFIG.with_name('fuzzy_controller_pid.yaml'))['axes']['z'])
+    axes = [*PoseController.from_config(cfg).axes, *TrackingController.from_config(cfg).axes,
+            PoseController.from_config(pid).axes[2]]
+    distinct = {}
+    for axis in axes:
+        s = axis.system
+        key = repr(([(v.name, v.lo, v.hi, v.sets) for v in [*s.inputs, s.output]], s.rules))
+        distinct.setdefault(key, s)
+    return list(distinct.values())
+
+
+def gaussian_inputs_config(**ops):
+    """Gaussian input sets between trapezoid shoulders (one vertical at the range end, one
+    whose top runs past it) and a Gaussian centred on a range end; output partition."""
+    cfg = pd_config(**ops)
+    cfg['inputs']['error'] = {'range': [-1, 1], 'mf': {
+        'NB': [-1.0, -1.0, -0.75, -0.4], 'NM': [-0.5, 0.15], 'NS': [-0.2, 0.1], 'ZE': [0.0, 0.08],
+        'PS': [0.2, 0.1], 'PM': [0.5, 0.15], 'PB': [0.4, 0.75, 1.0, 1.0]}}
+    cfg['inputs']['rate'] = {'range': [-1, 1], 'mf': {
+        'NB': [-1.0, 0.3], 'NS': [-0.35, 0.2], 'ZE': [0.0, 0.15], 'PS': [0.35, 0.2],
+        'PB': [0.6, 0.85, 1.2, 1.4]}}
+    cfg['rules'][17] += ' WITH 0.6'          # (ZE, ZE) -> ZE, weighted
+    return cfg
+
+
+# scikit-fuzzy takes ~40-70 ms per scalar evaluation of a 35-rule system here, but its
+# array inputs run a 41 x 41 grid in about a second with the same arithmetic
+# (test_skfuzzy_array_inputs_equal_scalar_runs), so the grids are 41 x 41 (1681 points,
+# step 0.06 over and beyond [-1, 1]) and 13 x 13 x 13 for the 45-rule PID-like system.
+@pytest.mark.parametrize('system', config_systems(),
+                         ids=lambda s: f'config-{len(s.inputs)}in-{len(s.rules)}rules')
+def test_config_systems_equal_skfuzzy_on_dense_grid(system):
+    inputs = input_grid(41) if len(system.inputs) == 2 else input_grid(13, 3)
+    y, ok = FuzzyBank([system] * len(inputs)).evaluate(inputs)
+    assert ok.all()
+    assert np.abs(y - skfuzzy_outputs(system, inputs)).max() < 1e-6
+
+
+@pytest.mark.parametrize('ops', [{'and': 'min'}, {'and': 'product'}], ids=['min', 'product'])
+def test_centroid_equals_skfuzzy_on_dense_grid(ops):
     cfg = pd_config(**ops)
     cfg['rules'][17] += ' WITH 0.6'          # (ZE, ZE) -> ZE, weighted
-    _, y, ok, ref = engine_and_reference(cfg, input_grid(n))
+    _, y, ok, ref = engine_and_reference(cfg, input_grid(41))
     assert ok.all()
     assert np.abs(y - ref).max() < 1e-6
+
+
+@pytest.mark.parametrize('ops', [{'and': 'min'}, {'and': 'product'}], ids=['min', 'product'])
+def test_gaussian_input_sets_equal_skfuzzy(ops):
+    # The grid plus random points: the grid's inputs lie on scikit-fuzzy's even input
+    # samples, random ones between them, where its interpolated Gaussians differ from
+    # the exact ones unless the samples are dense (fuzzy_reference.input_universe).
+    inputs = np.vstack([input_grid(41), np.random.default_rng(9).uniform(-1.1, 1.1, (400, 2))])
+    system, y, ok, ref = engine_and_reference(gaussian_inputs_config(**ops), inputs)
+    assert not FuzzyBank([system]).linear_firing          # the general fuzzification path
+    assert ok.all()
+    assert np.abs(y - ref).max() < 1e-6
+
+
+def test_skfuzzy_array_inputs_equal_scalar_runs():
+    # The reference's one-call array run is scikit-fuzzy's own scalar computation.
+    system = FuzzySystem.from_config(gaussian_inputs_config())
+    x = np.random.default_rng(10).uniform(-1.1, 1.1, (6, 2))
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', DeprecationWarning)
+        sim = to_skfuzzy(system)
+        scalar = [skfuzzy_evaluate(sim, system, xi) for xi in x]
+    assert skfuzzy_outputs(system, x).tolist() == scalar
 
 
 def brute_force(system, x, points=200001, what='centroid'):
@@ -70,7 +142,7 @@ def brute_force(system, x, points=200001, what='centroid'):
 
 
 def test_bisector_matches_skfuzzy_and_brute_force():
-    inputs = input_grid(11)
+    inputs = input_grid(41)
     system, y, ok, ref = engine_and_reference(pd_config(defuzzification='bisector', resolution=1001), inputs)
     agree = np.abs(y - ref) < 1e-6
     # scikit-fuzzy's bisector loses accuracy on nearly flat pieces (it solves a quadratic
@@ -277,12 +349,8 @@ def test_closed_form_centroid_over_all_level_patterns(apexes, resolution, output
     (y, ok), (y_ref, ok_ref) = fast.evaluate(levels), general.evaluate(levels)
     assert (ok == ok_ref).all() and not ok[-1] and y[-1] == 0.0
     assert np.abs(y - y_ref).max() < 1e-12
-    sim = to_skfuzzy(system)
-    sample = rng.choice(np.flatnonzero(ok), 30, replace=False)
-    with warnings.catch_warnings():
-        warnings.simplefilter('ignore', DeprecationWarning)
-        ref = np.array([skfuzzy_evaluate(sim, system, levels[k]) for k in sample])
-    assert np.abs(y[sample] - ref).max() < 1e-6
+    sample = rng.choice(np.flatnonzero(ok), 300, replace=False)
+    assert np.abs(y[sample] - skfuzzy_outputs(system, levels[sample])).max() < 1e-6
 
 
 def test_general_centroid_equals_skfuzzy_for_overlapping_trapezoids():
@@ -292,6 +360,6 @@ def test_general_centroid_equals_skfuzzy_for_overlapping_trapezoids():
         'ZE': [-0.25, 0, 0.25], 'PS': [-0.05, 0.2, 0.3, 0.5], 'PM': [0.25, 0.55, 0.9],
         'PB': [0.4, 0.8, 1, 1]}}
     cfg['rules'][17] += ' WITH 0.6'
-    system, y, ok, ref = engine_and_reference(cfg, input_grid(11))
+    system, y, ok, ref = engine_and_reference(cfg, input_grid(41))
     assert not FuzzyBank([system]).closed_form
     assert ok.all() and np.abs(y - ref).max() < 1e-6

@@ -1,0 +1,78 @@
+"""FlightReport scores a flight log exactly: pose errors by stamp, interpolated odometry,
+command latencies from the image stamps they carry, setpoint holds; the log survives
+save/load. Truth is the synthetic log built here."""
+import math
+
+import numpy as np
+import pytest
+
+from uav_vs.flight_report import (CommandTrack, FlightLog, FlightReport, PoseTrack,
+                                  SetpointEvent, command_latencies)
+
+MS = 1_000_000
+T0 = 1_700_000_000 * 10**9
+
+
+def track(stamps, positions, yaws, latency_ms=0.0) -> PoseTrack:
+    stamps = np.asarray(stamps, np.int64)
+    return PoseTrack(stamps, stamps + int(latency_ms * MS), np.asarray(positions, float),
+                     np.asarray(yaws, float))
+
+
+def make_log() -> FlightLog:
+    frames = T0 + np.arange(50, dtype=np.int64) * 100 * MS          # 10 Hz, 5 s
+    t = (frames - T0) * 1e-9
+    truth_p = np.column_stack([t, 0.5 * t, np.full_like(t, 1.5)])
+    truth = track(frames, truth_p, 0.1 * t)
+    ground = track(frames, truth_p + [0.03, 0.0, 0.04], 0.1 * t + math.radians(2.0), 20.0)
+    odom_stamps = frames[:-1] + 50 * MS                               # between the frames
+    odom_t = (odom_stamps - T0) * 1e-9
+    odom = track(odom_stamps, np.column_stack([odom_t, 0.5 * odom_t, np.full_like(odom_t, 1.5)]),
+                 0.1 * odom_t)
+    # Commands: one per frame (latency 30 + k ms), and timer ones stamped in between.
+    k = np.arange(len(frames))
+    stamps = np.concatenate([frames, frames + 7 * MS])
+    received = np.concatenate([frames + (30 + k) * MS, frames + 8 * MS])
+    commands = CommandTrack(stamps, received, np.zeros((len(stamps), 3)), np.zeros(len(stamps)))
+    hold = SetpointEvent('hold', 'ground', (2.0, 1.0, 1.5, 0.2), int(frames[10]),
+                         settled_ns=int(frames[20]), reached_ns=int(frames[30]))
+    return FlightLog('synthetic', truth, ground, PoseTrack(), odom, commands, frames,
+                     np.zeros(0, np.int64), [hold], pad=None, takeoff_ns=int(frames[0]))
+
+
+def test_sources_commands_and_setpoints_are_scored_exactly():
+    log = make_log()
+    report = FlightReport.from_log(log)
+    ground = report.sources['ground']
+    assert ground.samples == 50
+    assert ground.position_rmse_m == pytest.approx(0.05, abs=1e-12)      # |(0.03, 0, 0.04)|
+    assert ground.yaw_rmse_deg == pytest.approx(2.0, abs=1e-9)
+    assert ground.latency_median_ms == pytest.approx(20.0)
+    odom = report.sources['odom']          # on the truth's straight line: interpolation exact
+    assert odom.samples == 49 and odom.position_rmse_m < 1e-9 and odom.yaw_rmse_deg < 1e-9
+    assert report.sources['onboard'].samples == 0
+
+    latency = command_latencies(log)      # only the commands that carry a frame's stamp
+    np.testing.assert_allclose(np.sort(latency), 30.0 + np.arange(50))
+    assert report.commands.commands == 100 and report.commands.from_images == 50
+    assert report.commands.latency_median_ms == pytest.approx(54.5)
+    assert report.commands.latency_p95_ms == pytest.approx(np.percentile(30.0 + np.arange(50), 95))
+
+    (hold,) = report.setpoints
+    t = np.arange(20, 31) * 0.1          # truth over the hold, against (2, 1, 1.5)
+    dist = np.hypot(t - 2.0, 0.5 * t - 1.0)
+    assert hold.reached and hold.settle_s == pytest.approx(1.0)
+    assert hold.error_max_m == pytest.approx(dist.max()) and hold.error_end_m == pytest.approx(dist[-1])
+    assert 'image stamp to command: median 54.5 ms' in report.summary()
+
+
+def test_save_and_load_keep_everything(tmp_path):
+    log = make_log()
+    log.save(tmp_path / 'flight.npz')
+    back = FlightLog.load(tmp_path / 'flight.npz')
+    for name in ('truth', 'ground', 'onboard', 'odom', 'commands'):
+        a, b = getattr(log, name), getattr(back, name)
+        for field in vars(a):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=name)
+    assert back.setpoints == log.setpoints and back.takeoff_ns == log.takeoff_ns
+    assert FlightReport.from_log(back) == FlightReport.from_log(log)
