@@ -24,6 +24,41 @@ def checkerboard_with_blob():
     return img, inner
 
 
+# Round discs: blob-like, no corner; their detector responses move as the window grows.
+DISCS = ((215, 35, 6), (270, 60, 9), (225, 115, 12), (290, 135, 5), (200, 190, 4),
+         (255, 195, 7), (120, 195, 10), (50, 200, 5))
+
+
+def polygon_with_discs():
+    """A quadrilateral with exact vertices and round discs, area-sampled (drawn at 16x).
+
+    Vertex v in pixel-edge coordinates is at v - 0.5 in OpenCV's pixel-centre ones.
+    """
+    s = 16
+    big = np.full((240 * s, 320 * s), 40, np.uint8)
+    verts = np.array([[40.25, 30.5], [130.75, 22.0], [150.5, 110.25], [60.0, 128.75]])
+    cv2.fillPoly(big, [np.round(verts * s).astype(np.int32)], 220)
+    for x, y, r in DISCS:
+        cv2.circle(big, (x * s, y * s), r * s, 200, -1)
+    return cv2.resize(big, (320, 240), interpolation=cv2.INTER_AREA), verts - 0.5
+
+
+@pytest.mark.parametrize('use_harris, disc_responses', [(False, (20, 100)), (True, (3, 12))])
+def test_regrown_window_keeps_the_true_vertices_and_drops_the_blobs(use_harris, disc_responses):
+    img, true = polygon_with_discs()
+    kept = robust_corners(img, use_harris=use_harris)
+    d = np.linalg.norm(kept[:, None] - true[None], axis=2)
+    # Exactly the four vertices, each to 0.35 px (cornerSubPix on slanted area-sampled
+    # L-corners is biased by up to ~0.27 px here).
+    assert len(kept) == 4 and (d.min(0) < 0.35).all(), kept
+    # The detector and the eigenvalue test alone keep responses on the discs (28 for
+    # Shi-Tomasi; 6 for Harris, whose det - k tr^2 penalises edges): the window test
+    # is what drops them.
+    unchecked = robust_corners(img, max_shift_px=np.inf, use_harris=use_harris)
+    on_discs = np.linalg.norm(unchecked[:, None] - true[None], axis=2).min(1) > 5
+    assert disc_responses[0] <= on_discs.sum() <= disc_responses[1], unchecked
+
+
 def test_robust_corners_are_the_true_corners():
     img, inner = checkerboard_with_blob()
     pts = robust_corners(img, block_sizes=(3, 5, 7, 9), min_eigenvalue=0.01)
@@ -72,5 +107,7 @@ def test_ratio_test_matches_a_rotated_copy(kind):
 def test_bad_input_is_a_clear_error():
     with pytest.raises(ValueError, match='8-bit'):
         robust_corners(np.zeros((100, 100), np.float32))
+    with pytest.raises(ValueError, match='increasing'):
+        robust_corners(np.zeros((100, 100), np.uint8), block_sizes=(5, 3))
     with pytest.raises(ValueError, match='unknown feature kind'):
         detect_and_describe(np.zeros((64, 64), np.uint8), 'surf')

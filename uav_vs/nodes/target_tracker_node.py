@@ -1,9 +1,13 @@
 """target_tracker_node: a planar target found in every onboard frame (chapter Fig. 2).
 
 The target (a helipad, a car seen from above) is given by a template image file
-(`target.template`). Its features are matched in each frame (SIFT, or the free ORB,
+(`target.template`); a relative path is looked for in the working directory, then in
+the installed share/uav_vs/config, then beside the uav_vs package (so the YAML's
+`uav_vs/sim/assets/box.png` works wherever `ros2 run` starts the node) and in its
+sim/assets. Its features are matched in each frame (SIFT, or the free ORB,
 section 2.2) and a robust homography (section 2.3, Algorithm 1) maps the
-template onto the frame.
+template onto the frame. `target.method` defaults to 'ransac', the most accurate
+estimator on wide-baseline SIFT matches (uav_vs.vision.target_tracking).
 
 Subscribes `onboard/image_raw` (sensor_msgs/Image: bgr8, rgb8, bgra8, rgba8, mono8) and
 `onboard/image_raw/compressed` (sensor_msgs/CompressedImage: jpeg, png), sensor-data
@@ -17,7 +21,10 @@ bottom-left) mapped into the image, then the target's centre (the template centr
 `onboard/target_found` (std_msgs/Bool) for every frame processed, true or false; and
 /diagnostics (frames, found, not found, malformed, inliers, reason).
 """
+import os
+import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -25,6 +32,7 @@ from geometry_msgs.msg import PolygonStamped
 from rclpy.node import Node
 from std_msgs.msg import Bool, Header
 
+import uav_vs
 from uav_vs.ros.convert import points_to_polygon
 from uav_vs.ros.image_input import QOS_CHOICES, ImageInput
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, run
@@ -52,34 +60,54 @@ PARAMS = [
 ]
 
 
-def read_template(path: str) -> np.ndarray:
-    """The template as 8-bit grey; ParameterError naming target.template if unreadable."""
-    template = cv2.imread(path, cv2.IMREAD_GRAYSCALE) if path else None
+def template_candidates(path: str) -> list[Path]:
+    """Where target.template is looked for, in order: as given (relative: from the working
+    directory), then in share/uav_vs/config of the install prefixes, then in the uav_vs
+    package's parent directory and its sim/assets (found from the package's __file__)."""
+    given = Path(path)
+    if given.is_absolute():
+        return [given]
+    prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    shares = [Path(prefix) / 'share' / 'uav_vs' / 'config' for prefix in [*prefixes, sys.prefix]]
+    package = Path(uav_vs.__file__).resolve().parent
+    bases = [Path.cwd(), *shares, package.parent, package / 'sim' / 'assets']
+    return list(dict.fromkeys(base / given for base in bases))
+
+
+def read_template(path: str) -> tuple[np.ndarray, Path]:
+    """The template as 8-bit grey and its file; ParameterError naming target.template when
+    no candidate file exists or the first one found is not an image."""
+    candidates = template_candidates(path)
+    found = next((c for c in candidates if c.is_file()), None)
+    if found is None:
+        raise ParameterError(f'target.template: cannot read an image from {path!r} (no such '
+                             f"file: {', '.join(map(str, candidates))})")
+    template = cv2.imread(str(found), cv2.IMREAD_GRAYSCALE)
     if template is None:
-        raise ParameterError(f'target.template: cannot read an image from {path!r}')
-    return template
+        raise ParameterError(f'target.template: cannot read an image from {str(found)!r}')
+    return template, found
 
 
 class TargetTrackerNode(Node):
     def __init__(self) -> None:
         super().__init__('target_tracker_node')
         p = declare(self, PARAMS)
-        template = read_template(p['target.template'])
+        template, path = read_template(p['target.template'])
         try:
             self.tracker = PlanarTargetTracker(
                 template, kind=p['target.features'], ratio=p['target.ratio'],
                 method=p['target.method'], threshold_px=p['target.threshold_px'],
                 min_inliers=p['target.min_inliers'], max_features=p['target.max_features'])
         except ValueError as err:      # too few features in the template
-            raise ParameterError(f"target.template: {p['target.template']}: {err}") from None
+            raise ParameterError(f'target.template: {path}: {err}') from None
         self.target_pub = self.create_publisher(PolygonStamped, 'onboard/target', 10)
         self.found_pub = self.create_publisher(Bool, 'onboard/target_found', 10)
         self.images = ImageInput(self, 'onboard/image_raw', p['target.image_qos'], self.on_frame)
         self.counts = dict(frames=0, found=0, not_found=0)
         self.last = dict(reason='no image yet', inliers=0, process_ms=float('nan'))
-        self.diag = Diagnostics(self, hardware_id=p['target.template'])
+        self.diag = Diagnostics(self, hardware_id=str(path))
         self.create_timer(p['target.diagnostics_period'], self.publish_diagnostics)
-        self.get_logger().info(f"template {p['target.template']} ({template.shape[1]}x"
+        self.get_logger().info(f"template {path} ({template.shape[1]}x"
                                f"{template.shape[0]} px), {p['target.features']} features")
 
     def on_frame(self, gray: np.ndarray, header: Header) -> None:

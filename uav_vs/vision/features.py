@@ -1,8 +1,8 @@
 """Image features for tracking and matching (chapter section 2 and 2.2).
 
-- `robust_corners`: Harris / Shi-Tomasi good features to track, kept only if their
-  position stays put as the detection window grows and their minimum eigenvalue is
-  large enough (the robustness test of section 2).
+- `robust_corners`: Harris / Shi-Tomasi good features to track, detected again with
+  every detection window and kept only if their position stays put as the window
+  grows and their minimum eigenvalue is large enough (the robustness test of section 2).
 - `hough_lines`: straight lines (r, theta) by the Hough transform over Canny edges.
 - `detect_and_describe` / `match`: SIFT (section 2.2.1) or ORB, the free alternative
   to SURF (2.2.2); FLANN matching (kd-tree for float descriptors, LSH for binary ones)
@@ -10,9 +10,11 @@
 """
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 KINDS = ('sift', 'orb')            # OpenCV 5's main modules have no AKAZE/SURF
 _KDTREE, _LSH = 1, 6                                        # FLANN index algorithms
+_SUBPIX = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
 
 
 def as_gray(image: np.ndarray) -> np.ndarray:
@@ -25,32 +27,42 @@ def as_gray(image: np.ndarray) -> np.ndarray:
     return image
 
 
+def _corners_at(gray: np.ndarray, block: int, max_corners: int, quality: float,
+                min_distance: int, use_harris: bool) -> np.ndarray:
+    """Corners (N,2) detected with one detection window, refined sub-pixel in it."""
+    pts = cv2.goodFeaturesToTrack(gray, max_corners, quality, min_distance,
+                                  blockSize=block, useHarrisDetector=use_harris)
+    if pts is None:
+        return np.empty((0, 2), np.float32)
+    return cv2.cornerSubPix(gray, pts, (block, block), (-1, -1), _SUBPIX)[:, 0]
+
+
 def robust_corners(gray: np.ndarray, max_corners: int = 300, quality: float = 0.01,
                    min_distance: int = 8, block_sizes: tuple[int, ...] = (3, 5, 7, 9),
                    max_shift_px: float = 1.0, min_eigenvalue: float = 1e-3,
                    use_harris: bool = False) -> np.ndarray:
     """Corners (N,2) that are stable across detection windows (section 2).
 
-    Corners are detected with the smallest block size and refined to sub-pixel
-    precision once per block size (the refinement window grows with it); a corner is
-    kept if its refined positions differ by at most max_shift_px (maximum difference
-    criterion) and the minimum eigenvalue of its structure tensor, at the largest block
-    size, exceeds min_eigenvalue (cv2.cornerMinEigenVal units: ~0.09 for a 180-level step).
+    Corners are detected (Shi-Tomasi minimum eigenvalue, or Harris with use_harris)
+    once per block size, each set refined sub-pixel in a window that grows with the
+    block. A corner of the first (smallest) block size is kept if, at every larger
+    size, the nearest corner detected lies within max_shift_px of it (maximum
+    difference criterion) and the minimum eigenvalue of its structure tensor, at the
+    largest block size, is at least min_eigenvalue (cv2.cornerMinEigenVal units: ~0.09
+    for a 180-level step). Returns the kept corners' positions at the first size.
     """
     gray = as_gray(gray)
-    pts = cv2.goodFeaturesToTrack(gray, max_corners, quality, min_distance,
-                                  blockSize=block_sizes[0], useHarrisDetector=use_harris)
-    if pts is None:
-        return np.empty((0, 2), np.float32)
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-    runs = np.stack([cv2.cornerSubPix(gray, pts.copy(), (b, b), (-1, -1), criteria)[:, 0]
-                     for b in block_sizes])                 # (sizes, N, 2)
-    shift = np.linalg.norm(runs - runs[:1], axis=2).max(0)
+    if not block_sizes or any(b >= c for b, c in zip(block_sizes, block_sizes[1:])):
+        raise ValueError(f'block_sizes must be increasing, got {block_sizes}')
+    first, *larger = (_corners_at(gray, b, max_corners, quality, min_distance, use_harris)
+                      for b in block_sizes)
+    keep = np.ones(len(first), bool)
+    for pts in larger:
+        keep &= cKDTree(pts).query(first)[0] <= max_shift_px
     eig = cv2.cornerMinEigenVal(gray, block_sizes[-1], 3)
-    xy = np.round(runs[0]).astype(int)
-    xy = np.clip(xy, 0, [gray.shape[1] - 1, gray.shape[0] - 1])
-    keep = (shift <= max_shift_px) & (eig[xy[:, 1], xy[:, 0]] >= min_eigenvalue)
-    return runs[0][keep]
+    xy = np.clip(np.round(first).astype(int), 0, [gray.shape[1] - 1, gray.shape[0] - 1])
+    keep &= eig[xy[:, 1], xy[:, 0]] >= min_eigenvalue
+    return first[keep]
 
 
 def hough_lines(gray: np.ndarray, canny_low: int = 50, canny_high: int = 150,

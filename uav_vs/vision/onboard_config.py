@@ -5,6 +5,12 @@ node can declare them; `load_onboard_config(flat_params)` checks them and builds
 camera, its extrinsic, the first frame's plane homography and the estimator settings.
 A bad value raises CalibrationError (calibration, extrinsic, initialisation) or
 ValueError (tuning), one line naming the parameter.
+
+`homography.method` defaults to 'opencv_magsac': on the pose pipeline's own
+keyframe-to-frame tracks every estimator gives the same pose accuracy (0.13-0.17 % of
+the height, 0.06-0.08 deg, no frame lost, also with 20-40 % of the tracks made random)
+and MAGSAC is the fastest (0.7 ms a frame; cv2 RANSAC 0.7-1.3 ms, 'ransac' 2.4-3.2 ms),
+with a lower corner error than cv2 RANSAC on the Oxford pairs (homography.py).
 """
 from dataclasses import dataclass
 from typing import Mapping
@@ -80,7 +86,7 @@ SETTINGS = (
     Setting('features.block_size', 'int', 5, 'GFTT eigenvalue window at the detection level, '
             'odd, px', 3, 31),
     Setting('features.detect_level', 'int', 1, 'pyramid level features are detected on', 0, 3),
-    Setting('homography.method', 'str', 'opencv_ransac', 'robust homography estimator',
+    Setting('homography.method', 'str', 'opencv_magsac', 'robust homography estimator',
             choices=METHODS),
     Setting('homography.threshold_px', 'float', 2.0, 'inlier distance, px', 0.1, 50.0),
     Setting('homography.confidence', 'float', 0.995, 'RANSAC confidence p (Algorithm 1)',

@@ -46,7 +46,7 @@ class PlanePoseParams:
     min_inliers: int = 15            # fewer homography inliers: tracking loss
     reanchor_inliers: int = 70       # re-anchor when inliers drop below this
     reanchor_coverage: float = 0.35  # ... or their bounding box covers less of the image
-    method: str = 'opencv_ransac'    # robust homography estimator (homography.py)
+    method: str = 'opencv_magsac'    # robust homography estimator (homography.py)
     threshold_px: float = 2.0        # inlier distance for the homography, px
     confidence: float = 0.995        # RANSAC confidence p (Algorithm 1)
     max_trials: int = 500            # RANSAC trial cap

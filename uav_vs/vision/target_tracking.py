@@ -4,6 +4,9 @@ The template (e.g. a car seen from above, a helipad) is described once; each fra
 described, matched against it with the ratio test (section 2.2) and the template-to-
 frame homography is estimated robustly (section 2.3, Algorithm 1). The target's
 corners and centre are the template's corners and centre mapped by that homography.
+The estimator defaults to 'ransac' (Algorithm 1), the most accurate on the Oxford
+wide-baseline SIFT matches, the kind this tracker makes (homography.py); its ~8 ms a
+call is small beside the ~200 ms SIFT takes on a 640x480 frame.
 """
 from dataclasses import dataclass
 
