@@ -4,6 +4,7 @@ import rclpy
 from rclpy.node import Node
 
 from uav_vs.ros.params import Param, ParameterError, T, declare
+from uav_vs.ros.params_file import check_params_file, params_files
 
 
 @pytest.fixture
@@ -58,3 +59,33 @@ def test_errors_name_the_parameter_in_one_line(make_node, overrides, message):
         declare(make_node(*overrides), SPECS)
     assert str(err.value).startswith(message)
     assert '\n' not in str(err.value)
+
+
+@pytest.mark.parametrize('items', [
+    '[598, 0.0, 1.0]', '[598.0, abc]', '[1, "2"]', '[y, true, off]', '[y, 1]', '[1e3, 2.0]',
+    '[0x10, 017, 3]', '[08, 1.5]', '[.inf, -.INF, nan, 1.0]', '[99999999999999999999, 1.5]',
+    '[1e400, abc]', '[1e400, 1.0]', '[0x1p3, 2.5]', "['1', '2.0']", '[1_000, 1]',
+])
+def test_params_file_check_agrees_with_rcl(tmp_path, items):
+    """check_params_file refuses exactly the lists that rcl itself refuses."""
+    path = tmp_path / 'params.yaml'
+    path.write_text(f'/**:\n  ros__parameters:\n    group:\n      values: {items}\n')
+    ctx = rclpy.Context()
+    try:
+        rclpy.init(args=['--ros-args', '--params-file', str(path)], context=ctx)
+    except RuntimeError:
+        rcl_accepts = False
+    else:
+        rcl_accepts = True
+        rclpy.shutdown(context=ctx)
+    problem = check_params_file(str(path))
+    assert (problem is None) == rcl_accepts, problem
+    if problem is not None:
+        assert problem.startswith('group.values: list mixes ') and '\n' not in problem
+
+
+def test_params_files_are_read_from_the_ros_args_sections_only():
+    args = ['node', '--params-file', 'not_ros.yaml', '--ros-args', '-r', '__ns:=/a',
+            '--params-file', 'a.yaml', '--', '--params-file', 'app.yaml',
+            '--ros-args', '--params-file', 'b.yaml']
+    assert params_files(args) == ['a.yaml', 'b.yaml']

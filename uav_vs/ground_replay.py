@@ -43,10 +43,11 @@ def ground_graph(config: Path, cameras: list[str], log_dir: Path,
 
 
 def replay_ground_bag(bag: Path, config: Path, log_dir: Path, cameras: list[str],
-                      rate: float = 1.0, settle_s: float = 2.0) -> GroundReport:
+                      rate: float = 1.0, settle_s: float = 2.0,
+                      extra_args: list[str] = ()) -> GroundReport:
     """Run the ground graph on `bag` and compare its poses with the bag's truth."""
-    replay = replay_bag(bag, lambda: ground_graph(config, cameras, log_dir), 'ground/pose',
-                        rate, settle_s)
+    replay = replay_bag(bag, lambda: ground_graph(config, cameras, log_dir, extra_args),
+                        'ground/pose', rate, settle_s)
     err = pose_errors(replay.poses, replay.truth)
     return GroundReport(len(replay.truth), len(err.stamps), rms(err.position_m), rms(err.yaw_deg),
                         err.position_m, err.yaw_deg, replay.return_codes)
