@@ -195,8 +195,9 @@ def test_flight_in_world_and_body_frames_odometry_and_landing(ros_node, processe
         vehicle.stop()
 
 
-def test_stale_input_hovers_and_link_loss_reconnects_without_replay(ros_node, processes):
-    vehicle, connection = vehicle_and_connection('tcp')
+@pytest.mark.parametrize('transport', ['udp', 'tcp'])
+def test_stale_input_hovers_and_link_loss_reconnects_without_replay(ros_node, processes, transport):
+    vehicle, connection = vehicle_and_connection(transport)
     try:
         start_relay(processes, connection, 'allow_arming:=true', 'command_timeout:=0.3',
                     'link_timeout:=2.0')
@@ -284,7 +285,12 @@ def test_refused_arming_carries_the_reason_and_malformed_cmd_vel_is_skipped(ros_
         start_relay(processes, conn1, 'allow_arming:=true', ns='/a', label='a')
         start_relay(processes, conn2, ns='/b', label='b')    # allow_arming false (the default)
         a, b = Probe(ros_node, '/a'), Probe(ros_node, '/b')
-        a.wait_diag(link='connected')
+        # not ready, and the diagnostics say which checks fail (all three, on ArduPilot)
+        assert wait_for(lambda: 'EKF_STATUS_REPORT flags' in a.diag().get('prearm_reasons', ''), 10)
+        diag = a.wait_diag(link='connected', prearm_ok='False')
+        assert diag['prearm_reasons'] == ('SYS_STATUS pre-arm check not passed; EKF_STATUS_REPORT '
+                                          'flags 0xa5 lack EKF_POS_HORIZ_ABS, EKF_PRED_POS_HORIZ_ABS; '
+                                          'GPS fix GPS_FIX_TYPE_NO_FIX, needs 3D')
         response = a.call('arm', True)
         assert not response.success
         assert 'PreArm: Need Position Estimate' in response.message      # the autopilot's reason
@@ -293,7 +299,7 @@ def test_refused_arming_carries_the_reason_and_malformed_cmd_vel_is_skipped(ros_
         assert not response.success and 'GUIDED requires position' in response.message
         assert not not_ready.truth().armed
 
-        b.wait_diag(link='connected', prearm_ok='True')
+        b.wait_diag(link='connected', prearm_ok='True', prearm_reasons='')
         assert b.call('set_guided').success and ready.truth().mode == 'GUIDED'
         response = b.call('arm', True)
         assert not response.success and 'allow_arming' in response.message
@@ -382,9 +388,12 @@ def test_vision_pose_is_forwarded_in_ned(ros_node, processes):
         autopilot.close()
 
 
-def _gcs_hears(port: int, seconds: float) -> tuple[list, list]:
-    """A GCS without the key sends DO_SET_MODE STABILIZE: (its ACKs, HEARTBEAT signed flags)."""
-    gcs = open_connection(f'udpout:127.0.0.1:{port}', source_system=254)
+def _gcs_hears(transport: str, port: int, seconds: float) -> tuple[list, list]:
+    """A GCS without the key sends DO_SET_MODE STABILIZE: (its ACKs, HEARTBEAT signed flags).
+
+    The simulator serves one TCP client, the newest: over TCP, stop the relay first."""
+    device = {'tcp': f'tcp:127.0.0.1:{port}', 'udp': f'udpout:127.0.0.1:{port}'}[transport]
+    gcs = open_connection(device, source_system=254)
     gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
     gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 0, 0, 0, 0, 0, 0)
     end, acks, signed = time.monotonic() + seconds, [], []
@@ -400,25 +409,28 @@ def _gcs_hears(port: int, seconds: float) -> tuple[list, list]:
     return acks, signed
 
 
+@pytest.mark.parametrize('transport', ['udp', 'tcp'])
 def test_signing_rejects_unsigned_traffic_both_ways_and_installs_the_key(ros_node, processes,
-                                                                          tmp_path):
+                                                                          tmp_path, transport):
     key_file = tmp_path / 'signing.key'
     key_file.write_text('correct horse battery staple\n')
     key = load_signing_key(key_file)
-    signed, conn1 = vehicle_and_connection('udp', signing_key=key)
-    unsigned, conn2 = vehicle_and_connection('udp')
-    fresh, conn3 = vehicle_and_connection('udp')
+    signed, conn1 = vehicle_and_connection(transport, signing_key=key)
+    unsigned, conn2 = vehicle_and_connection(transport)
+    fresh, conn3 = vehicle_and_connection(transport)
     try:
-        start_relay(processes, conn1, f'signing_key_file:={key_file}', ns='/a', label='a')
+        relay_a = start_relay(processes, conn1, f'signing_key_file:={key_file}', ns='/a', label='a')
         start_relay(processes, conn2, f'signing_key_file:={key_file}', ns='/b', label='b')
-        start_relay(processes, conn3, f'signing_key_file:={key_file}', 'signing_required:=false',
-                    ns='/c', label='c')
+        relay_c = start_relay(processes, conn3, f'signing_key_file:={key_file}',
+                              'signing_required:=false', ns='/c', label='c')
         a, b, c = Probe(ros_node, '/a'), Probe(ros_node, '/b'), Probe(ros_node, '/c')
 
         # both sides sign: commands and ACKs go through
         a.wait_diag(link='connected', vehicle_signs='True', signing='True')
         assert a.call('set_guided').success and signed.truth().mode == 'GUIDED'
-        acks, flags = _gcs_hears(signed.address[1], 1.5)
+        if transport == 'tcp':
+            assert graph.stop([relay_a]) == [0]
+        acks, flags = _gcs_hears(transport, signed.address[1], 1.5)
         assert acks == [] and signed.truth().mode == 'GUIDED'   # unsigned command dropped
         assert flags and all(flags)                              # and all it hears is signed
 
@@ -434,7 +446,9 @@ def test_signing_rejects_unsigned_traffic_both_ways_and_installs_the_key(ros_nod
         assert response.success, response.message
         assert fresh.truth().signing
         c.wait_diag(vehicle_signs='True')
-        acks, _ = _gcs_hears(fresh.address[1], 1.2)
+        if transport == 'tcp':
+            assert graph.stop([relay_c]) == [0]
+        acks, _ = _gcs_hears(transport, fresh.address[1], 1.2)
         assert acks == [] and fresh.truth().mode == 'STABILIZE'
         for label in 'abc':   # the key never reaches a log
             log = processes.log(label)

@@ -1,9 +1,10 @@
 """The simulated ArduCopter on its own, driven by a bare pymavlink GCS (not the relay).
 
 Checks the Copter behaviour the relay has to cope with: no streams until asked,
-ACK codes and reasons, velocity targets ignored on the ground, aborting a takeoff,
-GUID_TIMEOUT coasting, silent stop-and-hold on bad targets, nose-into-travel when yaw
-is ignored, and the console script as a process.
+readiness (pre-arm bit, EKF flags, GPS fix), ACK codes and reasons, velocity targets
+ignored on the ground, aborting a takeoff, GUID_TIMEOUT coasting, silent stop-and-hold
+on bad targets, nose-into-travel when yaw is ignored, SETUP_SIGNING ignored while armed,
+and the console script as a process.
 """
 import math
 import subprocess
@@ -92,6 +93,34 @@ def test_streams_start_only_when_requested_and_ack_codes():
         gcs.close()
 
 
+def test_readiness_reports_stream_when_asked_and_turn_good_at_ready_delay():
+    with vehicle(ready_delay=1.5) as sim:
+        gcs = Gcs(sim.address[1])
+        kinds = {m.get_type() for m in gcs.collect(0.3)}
+        assert not kinds & {'EKF_STATUS_REPORT', 'GPS_RAW_INT', 'SYS_STATUS'}
+        for msg_id in (mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT, mavlink.MAVLINK_MSG_ID_GPS_RAW_INT,
+                       mavlink.MAVLINK_MSG_ID_SYS_STATUS):
+            assert gcs.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 100000) == mavlink.MAV_RESULT_ACCEPTED
+        seen = gcs.collect(2.0)     # across ready_delay: 'EKF3 IMU0 is using GPS' marks it
+        ready = [k for k, m in enumerate(seen) if m.get_type() == 'STATUSTEXT'
+                 and m.text == 'EKF3 IMU0 is using GPS']
+        assert len(ready) == 1
+        before, after = seen[:ready[0]], seen[ready[0]:]
+
+        def values(msgs, kind, field):
+            return [getattr(m, field) for m in msgs if m.get_type() == kind]
+        bit, good = mavlink.MAV_SYS_STATUS_PREARM_CHECK, 0x10 | 0x200
+        for msgs, ok in ((before, False), (after, True)):
+            ekf = values(msgs, 'EKF_STATUS_REPORT', 'flags')
+            fix = values(msgs, 'GPS_RAW_INT', 'fix_type')
+            health = values(msgs, 'SYS_STATUS', 'onboard_control_sensors_health')
+            assert len(ekf) >= 3 and len(fix) >= 3 and len(health) >= 3
+            assert all((f & good == good) is ok for f in ekf), ekf
+            assert all((f >= 3) is ok for f in fix), fix
+            assert all(bool(h & bit) is ok for h in health), health
+        gcs.close()
+
+
 def test_arming_rules():
     with vehicle(ready_delay=0.8, disarm_delay=0.5) as sim:
         gcs = Gcs(sim.address[1])
@@ -154,6 +183,21 @@ def test_bad_targets_hold_and_yaw_follows_travel_when_ignored():
         gcs.target((0.8, 0.0, 0.0), frame=mavlink.MAV_FRAME_BODY_OFFSET_NED)
         wait_for(lambda: sim.truth().velocity[1] > 0.7, 2.0, 'flying east')
         assert abs(sim.truth().velocity[0]) < 0.1
+        gcs.close()
+
+
+def test_setup_signing_is_ignored_while_armed():
+    key = bytes(range(32))
+    with vehicle() as sim:
+        gcs = Gcs(sim.address[1])
+        assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 4) == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+        gcs.conn.mav.setup_signing_send(1, 1, list(key), 1)
+        heartbeats = [m for m in gcs.collect(1.2) if m.get_type() == 'HEARTBEAT']   # no ACK, by design
+        assert heartbeats and sim.truth().armed and not sim.truth().signing
+        assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0) == mavlink.MAV_RESULT_ACCEPTED
+        gcs.conn.mav.setup_signing_send(1, 1, list(key), 1)   # disarmed: installed
+        wait_for(lambda: sim.truth().signing, 1.0, 'the key to be installed')
         gcs.close()
 
 

@@ -41,6 +41,14 @@ VELOCITY_MODE = {ARDUPILOT: 'GUIDED', PX4: 'OFFBOARD'}
 BODY_FRAME = {ARDUPILOT: mavlink.MAV_FRAME_BODY_OFFSET_NED, PX4: mavlink.MAV_FRAME_BODY_NED}
 _LANDING_MODES = ('LAND',)
 _UNSIGNED_OK = frozenset({mavlink.MAVLINK_MSG_ID_RADIO_STATUS})  # telemetry radios never sign
+# Ready to arm on ArduPilot Copter, besides the SYS_STATUS pre-arm bit (see prearm_reasons).
+EKF_READY_FLAGS = mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_PRED_POS_HORIZ_ABS   # 0x10 | 0x200
+GPS_READY_FIX = mavlink.GPS_FIX_TYPE_3D_FIX
+# Telemetry only ArduPilot's readiness check reads: PX4 has no EKF_STATUS_REPORT (an
+# ardupilotmega message), and its GPS requirement is part of its own pre-arm checks.
+_ARDUPILOT_ONLY = frozenset({'EKF_STATUS_REPORT', 'GPS_RAW_INT'})
+# A refusal's reason: STATUSTEXT from the command's first send until this long after its ACK [s].
+_REASON_GRACE = 0.3
 
 
 class LinkState(str, Enum):
@@ -84,7 +92,8 @@ class Limits:
     max_descent: float = 0.7     # downward speed [m/s]
     max_yaw_rate: float = 1.0    # [rad/s]
     fence_min: tuple[float, float, float] | None = None  # world ENU box [m]: outward velocity
-    fence_max: tuple[float, float, float] | None = None  # components are zeroed at its faces
+    fence_max: tuple[float, float, float] | None = None  # components slowed down near its faces
+    fence_approach: float = 1.5  # [s] outward speed <= distance to the face / this
 
 
 @dataclass(frozen=True)
@@ -95,7 +104,8 @@ class SessionConfig:
     source_component: int = mavlink.MAV_COMP_ID_MISSIONPLANNER
     target_system: int = 0                  # 0: the first vehicle heard
     rates: dict = field(default_factory=lambda: {  # telemetry requested [Hz]
-        'LOCAL_POSITION_NED': 20.0, 'ATTITUDE': 20.0, 'GLOBAL_POSITION_INT': 5.0, 'SYS_STATUS': 1.0})
+        'LOCAL_POSITION_NED': 20.0, 'ATTITUDE': 20.0, 'GLOBAL_POSITION_INT': 5.0, 'SYS_STATUS': 1.0,
+        'EKF_STATUS_REPORT': 1.0, 'GPS_RAW_INT': 1.0})   # the last two: ArduPilot only
     stream_rate: float = 10.0               # setpoint re-send rate [Hz] (PX4 needs > 2)
     command_timeout: float = 0.5            # input older than this -> hover [s]
     link_timeout: float = 3.0               # no HEARTBEAT for this -> link lost [s]
@@ -130,7 +140,8 @@ class Status:
     mode: str | None
     armed: bool
     command: CommandState
-    prearm_ok: bool | None           # SYS_STATUS pre-arm check bit healthy
+    prearm_ok: bool | None           # ready to arm (see prearm_reasons); None before a HEARTBEAT
+    prearm_reasons: tuple[str, ...]  # why not: one entry per failing or unreported check
     battery_voltage: float | None    # [V]
     heartbeat_age: float | None      # [s]
     reconnects: int
@@ -138,6 +149,36 @@ class Status:
     vehicle_signs: bool              # last vehicle HEARTBEAT was signed
     rejected: int                    # incoming messages dropped for a missing or bad signature
     statustext: tuple[str, ...]      # the autopilot's latest STATUSTEXT, newest last
+
+
+def prearm_reasons(autopilot: str | None, prearm_bit: bool | None, ekf_flags: int | None,
+                   gps_fix: int | None) -> list[str]:
+    """Why the autopilot is not ready to arm, one entry per check (empty: ready).
+
+    None means not reported yet. ArduPilot Copter arms only with the SYS_STATUS pre-arm
+    check bit healthy, EKF_STATUS_REPORT flags 0x10 and 0x200 (absolute horizontal
+    position, now and predicted) and a GPS fix >= 3, so all three are checked. PX4 has no
+    EKF_STATUS_REPORT and folds its estimator and GPS checks (GPS is optional there, e.g.
+    with vision) into the pre-arm bit: that bit alone decides, as for other autopilots.
+    """
+    reasons = []
+    if prearm_bit is None:
+        reasons.append('no SYS_STATUS yet')
+    elif not prearm_bit:
+        reasons.append('SYS_STATUS pre-arm check not passed')
+    if autopilot != ARDUPILOT:
+        return reasons
+    if ekf_flags is None:
+        reasons.append('no EKF_STATUS_REPORT yet')
+    elif missing := EKF_READY_FLAGS & ~ekf_flags:
+        lacking = ', '.join(_enum_name('EKF_STATUS_FLAGS', bit) for bit in
+                            (mavlink.EKF_POS_HORIZ_ABS, mavlink.EKF_PRED_POS_HORIZ_ABS) if missing & bit)
+        reasons.append(f'EKF_STATUS_REPORT flags 0x{ekf_flags:x} lack {lacking}')
+    if gps_fix is None:
+        reasons.append('no GPS_RAW_INT yet')
+    elif gps_fix < GPS_READY_FIX:
+        reasons.append(f'GPS fix {_enum_name("GPS_FIX_TYPE", gps_fix)}, needs 3D')
+    return reasons
 
 
 def limit_velocity(v: tuple[float, float, float], yaw_rate: float,
@@ -151,17 +192,22 @@ def limit_velocity(v: tuple[float, float, float], yaw_rate: float,
     return (x, y, z), min(max(yaw_rate, -limits.max_yaw_rate), limits.max_yaw_rate)
 
 
-def fence_velocity(v_world: np.ndarray, position: np.ndarray | None, lo, hi) -> np.ndarray:
-    """Zero the world-velocity components that would leave the box [lo, hi] from `position`.
+def fence_velocity(v_world: np.ndarray, position: np.ndarray | None, lo, hi,
+                   approach: float) -> np.ndarray:
+    """Limit each world-velocity component that points out of the box [lo, hi] to the
+    distance from `position` to that face over `approach` seconds: the vehicle slows as
+    it nears a face (a first-order approach, so a velocity loop several times faster
+    than `approach` stops short of it) and never moves outward on or beyond it.
+    Inward components are untouched.
 
     Without a position estimate nothing can be checked, so the result is zero (hover).
     """
     if position is None:
         return np.zeros(3)
-    out = np.array(v_world, dtype=float)
-    out[(position <= np.asarray(lo)) & (out < 0)] = 0.0
-    out[(position >= np.asarray(hi)) & (out > 0)] = 0.0
-    return out
+    p = np.asarray(position, dtype=float)
+    up = np.maximum(np.asarray(hi) - p, 0.0) / approach
+    down = np.maximum(p - np.asarray(lo), 0.0) / approach
+    return np.clip(np.asarray(v_world, dtype=float), -down, up)
 
 
 class Session:
@@ -186,7 +232,7 @@ class Session:
         self._autopilot = self._vehicle_type = self._mode = None
         self._mav_type = None
         self._armed = False
-        self._prearm_ok = self._battery = None
+        self._prearm_bit = self._ekf_flags = self._gps_fix = self._battery = None
         self._last_hb = None
         self._vehicle_signs = False
         self._rejected = 0
@@ -205,7 +251,8 @@ class Session:
             'HEARTBEAT': self._on_heartbeat, 'COMMAND_ACK': self._on_ack,
             'STATUSTEXT': self._on_statustext, 'LOCAL_POSITION_NED': self._on_local_position,
             'ATTITUDE': self._on_attitude, 'GLOBAL_POSITION_INT': self._on_global_position,
-            'SYS_STATUS': self._on_sys_status}
+            'SYS_STATUS': self._on_sys_status, 'EKF_STATUS_REPORT': self._on_ekf_status,
+            'GPS_RAW_INT': self._on_gps_raw}
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> 'Session':
@@ -229,10 +276,14 @@ class Session:
     def status(self) -> Status:
         with self._cond:
             now = time.monotonic()
+            known = self._autopilot is not None
+            reasons = tuple(prearm_reasons(self._autopilot, self._prearm_bit, self._ekf_flags,
+                                           self._gps_fix)) if known else ()
             return Status(
                 link=self._link, autopilot=self._autopilot, vehicle_type=self._vehicle_type,
                 system_id=self._target[0] if self._target else None, mode=self._mode,
-                armed=self._armed, command=self._command_state, prearm_ok=self._prearm_ok,
+                armed=self._armed, command=self._command_state,
+                prearm_ok=not reasons if known else None, prearm_reasons=reasons,
                 battery_voltage=self._battery,
                 heartbeat_age=None if self._last_hb is None else now - self._last_hb,
                 reconnects=self._reconnects, signing=self._key is not None,
@@ -448,14 +499,16 @@ class Session:
                     if result == mavlink.MAV_RESULT_ACCEPTED:
                         return
                     # the reason usually comes just before the ACK, sometimes just after
-                    self._cond.wait_for(lambda: self._texts_since(sent - 1.0), 0.3)
-                    raise CommandError(command, result, self._texts_since(sent - 1.0))
-            raise CommandError(command, None, self._texts_since(sent - 1.0))
+                    until = time.monotonic() + _REASON_GRACE
+                    self._cond.wait_for(lambda: self._texts_between(sent, until), _REASON_GRACE)
+                    raise CommandError(command, result, self._texts_between(sent, until))
+            raise CommandError(command, None, self._texts_between(sent, time.monotonic()))
         finally:
             self._waiting.discard(command)
 
-    def _texts_since(self, t: float) -> list[str]:
-        return [text for stamp, text in self._texts if stamp >= t]
+    def _texts_between(self, start: float, end: float) -> list[str]:
+        """STATUSTEXT received in [start, end] (time.monotonic()), oldest first."""
+        return [text for stamp, text in self._texts if start <= stamp <= end]
 
     def _send_setpoint(self, now: float) -> None:
         v, yaw_rate, body = self._setpoint
@@ -467,7 +520,8 @@ class Session:
             if body:
                 yaw = frames.yaw_of(tel.orientation) if tel.orientation is not None else 0.0
                 v, body = frames.body_to_world(v, yaw), False
-            v = fence_velocity(v, tel.position, limits.fence_min, limits.fence_max)
+            v = fence_velocity(v, tel.position, limits.fence_min, limits.fence_max,
+                               limits.fence_approach)
         if body:
             frame, (vx, vy, vz) = BODY_FRAME.get(self._autopilot, mavlink.MAV_FRAME_BODY_NED), frames.flu_to_frd(v)
         else:
@@ -558,11 +612,14 @@ class Session:
         self._setpoint = ((0.0, 0.0, 0.0), 0.0, False)
         self._acks.clear()
         self._last_hb = None
+        self._prearm_bit = self._ekf_flags = self._gps_fix = None   # re-read: it may have rebooted
         self._cond.notify_all()
 
     def _request_streams(self, now: float) -> None:
         """SET_MESSAGE_INTERVAL for every wanted message not seen lately (per link, lost on reboot)."""
         for name, rate in self.config.rates.items():
+            if name in _ARDUPILOT_ONLY and self._autopilot != ARDUPILOT:
+                continue
             if now - self._seen.get(name, -math.inf) > max(1.0, 3.0 / rate):
                 self._conn.mav.command_long_send(
                     *self._target, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
@@ -648,6 +705,12 @@ class Session:
 
     def _on_sys_status(self, msg) -> None:
         bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
-        self._prearm_ok = bool(msg.onboard_control_sensors_present & bit) and bool(
+        self._prearm_bit = bool(msg.onboard_control_sensors_present & bit) and bool(
             msg.onboard_control_sensors_health & bit)
         self._battery = msg.voltage_battery * 1e-3 if msg.voltage_battery != 0xFFFF else None
+
+    def _on_ekf_status(self, msg) -> None:
+        self._ekf_flags = msg.flags
+
+    def _on_gps_raw(self, msg) -> None:
+        self._gps_fix = msg.fix_type

@@ -10,7 +10,7 @@ Subscribes `cmd_vel` (geometry_msgs/TwistStamped): header.frame_id `world_frame`
 skipped. Optionally subscribes `vision_pose_topic` (PoseStamped in `world_frame`) and
 forwards it to the autopilot's EKF as VISION_POSITION_ESTIMATE.
 Publishes `autopilot/odom` (nav_msgs/Odometry: pose in `world_frame`, twist in
-`body_frame`, REP-105) and link, mode, arming and command state on /diagnostics.
+`body_frame`, REP-105) and link, mode, arming, readiness and command state on /diagnostics.
 Services (std_srvs): `arm` (SetBool: true arms, only with `allow_arming`; false
 disarms), `takeoff` (Trigger, to `takeoff_height`), `land`, `set_guided` (GUIDED on
 ArduPilot, OFFBOARD on PX4) and `install_signing_key` (Trigger).
@@ -51,7 +51,8 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 # vision pose: only the newest is worth forwarding.
 NEWEST_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
 RATES = {'rates.local_position': 'LOCAL_POSITION_NED', 'rates.attitude': 'ATTITUDE',
-         'rates.global_position': 'GLOBAL_POSITION_INT', 'rates.sys_status': 'SYS_STATUS'}
+         'rates.global_position': 'GLOBAL_POSITION_INT', 'rates.sys_status': 'SYS_STATUS',
+         'rates.ekf_status': 'EKF_STATUS_REPORT', 'rates.gps_raw': 'GPS_RAW_INT'}
 
 PARAMS = [
     Param('connection', T.STRING, description=(
@@ -68,6 +69,9 @@ PARAMS = [
     Param('rates.global_position', T.DOUBLE, 5.0, 'GLOBAL_POSITION_INT rate requested, Hz',
           0.1, 200.0),
     Param('rates.sys_status', T.DOUBLE, 1.0, 'SYS_STATUS rate requested, Hz', 0.1, 50.0),
+    Param('rates.ekf_status', T.DOUBLE, 1.0, 'EKF_STATUS_REPORT rate requested (ArduPilot), Hz',
+          0.1, 50.0),
+    Param('rates.gps_raw', T.DOUBLE, 1.0, 'GPS_RAW_INT rate requested (ArduPilot), Hz', 0.1, 50.0),
     Param('stream_rate', T.DOUBLE, 10.0, 'setpoint re-send rate, Hz (PX4 needs > 2)', 2.5, 100.0),
     Param('command_timeout', T.DOUBLE, 0.5, 'cmd_vel older than this -> zero velocity (hover), s',
           0.05, 2.5),
@@ -83,6 +87,8 @@ PARAMS = [
           '(empty: no fence)'),
     Param('geofence.max', T.DOUBLE_ARRAY, [], 'fence box upper corner [x, y, z] in world ENU, m '
           '(empty: no fence)'),
+    Param('geofence.approach_time', T.DOUBLE, 1.5, 'outward speed limited to the distance to '
+          'the face over this, s', 0.1, 60.0),
     Param('allow_arming', T.BOOL, False, 'let the arm service arm the motors'),
     Param('takeoff_height', T.DOUBLE, 2.0, 'takeoff service height above home, m', 0.2, 100.0),
     Param('signing_key_file', T.STRING, '', 'file holding the MAVLink 2 signing key '
@@ -117,7 +123,8 @@ def session_config(p: dict) -> SessionConfig:
         check_key_file(p['signing_key_file'])
     limits = Limits(max_speed=p['limits.max_speed'], max_climb=p['limits.max_climb'],
                     max_descent=p['limits.max_descent'], max_yaw_rate=p['limits.max_yaw_rate'],
-                    fence_min=tuple(lo) or None, fence_max=tuple(hi) or None)
+                    fence_min=tuple(lo) or None, fence_max=tuple(hi) or None,
+                    fence_approach=p['geofence.approach_time'])
     return SessionConfig(
         connection=p['connection'], baud=p['baud'], source_system=p['source_system'],
         source_component=p['source_component'], target_system=p['target_system'],
@@ -229,7 +236,8 @@ class MavlinkRelayNode(Node):
         self.diag.publish(level, message, {
             'link': s.link.value, 'autopilot': s.autopilot, 'vehicle': s.vehicle_type,
             'system_id': s.system_id, 'mode': s.mode, 'armed': s.armed, 'command': s.command.value,
-            'prearm_ok': s.prearm_ok, 'battery_voltage': s.battery_voltage,
+            'prearm_ok': s.prearm_ok, 'prearm_reasons': '; '.join(s.prearm_reasons),
+            'battery_voltage': s.battery_voltage,
             'heartbeat_age': 'none' if s.heartbeat_age is None else f'{s.heartbeat_age:.2f}',
             'reconnects': s.reconnects, 'signing': s.signing, 'vehicle_signs': s.vehicle_signs,
             'rejected_unsigned': s.rejected, **self.counts,

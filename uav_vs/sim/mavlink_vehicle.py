@@ -13,8 +13,12 @@ Dynamics, in the autopilot's own local NED frame with home and the ground at z =
 What it does like ArduPilot Copter 4.x (what the relay relies on):
 - HEARTBEAT (1 Hz) with custom_mode: STABILIZE 0, GUIDED 4, LAND 9; type QUADROTOR.
 - Nothing else streams until MAV_CMD_SET_MESSAGE_INTERVAL asks for it:
-  SYS_STATUS, ATTITUDE, LOCAL_POSITION_NED (only once the estimator is ready),
-  GLOBAL_POSITION_INT; STATUSTEXT on events.
+  SYS_STATUS, EKF_STATUS_REPORT, GPS_RAW_INT, ATTITUDE, LOCAL_POSITION_NED (only once
+  the estimator is ready), GLOBAL_POSITION_INT; STATUSTEXT on events.
+- Ready to arm as ArduCopter reports it, all at once at `ready_delay`: the SYS_STATUS
+  pre-arm bit turns healthy, EKF_STATUS_REPORT gains flags 0x10 and 0x200 (absolute
+  horizontal position, from 'constant position' mode before) and GPS_RAW_INT goes from
+  no fix to a 3D fix.
 - COMMAND_LONG answered by COMMAND_ACK with real result codes: DO_SET_MODE,
   COMPONENT_ARM_DISARM, NAV_TAKEOFF, NAV_LAND, SET_MESSAGE_INTERVAL; others UNSUPPORTED.
 - Arming refused (FAILED + a 'PreArm:'/'Arm:' STATUSTEXT) until the estimator is ready
@@ -49,9 +53,17 @@ from uav_vs.autopilot.link import (FORCE_DISARM, POSITION_IGNORE, VELOCITY_IGNOR
 STABILIZE, GUIDED, LAND = 0, 4, 9
 MODE_NAMES = {STABILIZE: 'STABILIZE', GUIDED: 'GUIDED', LAND: 'LAND'}
 STREAMABLE = {mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_SYS_STATUS,
+              mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT, mavlink.MAVLINK_MSG_ID_GPS_RAW_INT,
               mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
               mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT}
 EARTH_RADIUS = 6378137.0
+# EKF_STATUS_REPORT flags before the estimator is ready (attitude and height, no horizontal
+# position: 'constant position' mode) and after (horizontal position, absolute and predicted).
+EKF_WAITING = (mavlink.EKF_ATTITUDE | mavlink.EKF_VELOCITY_VERT | mavlink.EKF_POS_VERT_ABS
+               | mavlink.EKF_CONST_POS_MODE)
+EKF_READY = (mavlink.EKF_ATTITUDE | mavlink.EKF_VELOCITY_HORIZ | mavlink.EKF_VELOCITY_VERT
+             | mavlink.EKF_POS_HORIZ_REL | mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_POS_VERT_ABS
+             | mavlink.EKF_PRED_POS_HORIZ_REL | mavlink.EKF_PRED_POS_HORIZ_ABS)
 
 
 @dataclass(frozen=True)
@@ -158,6 +170,8 @@ class MavlinkVehicle:
         self._senders = {
             mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._send_heartbeat,
             mavlink.MAVLINK_MSG_ID_SYS_STATUS: self._send_sys_status,
+            mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT: self._send_ekf_status,
+            mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: self._send_gps_raw,
             mavlink.MAVLINK_MSG_ID_ATTITUDE: self._send_attitude,
             mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._send_local_position,
             mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._send_global_position}
@@ -399,6 +413,21 @@ class MavlinkVehicle:
         health = prearm if self._ready else 0
         self._conn.mav.sys_status_send(prearm, prearm, health, 200, 12600, -1, 100, 0, 0, 0, 0, 0, 0)
 
+    def _send_ekf_status(self, now: float) -> None:
+        flags = EKF_READY if self._ready else EKF_WAITING
+        self._conn.mav.ekf_status_report_send(flags, 0.02, 0.02, 0.01, 0.01, 0.0)
+
+    def _send_gps_raw(self, now: float) -> None:
+        lat, lon, alt = self._lat_lon_alt()
+        if self._ready:
+            fix, eph, sats = mavlink.GPS_FIX_TYPE_3D_FIX, 80, 12
+        else:
+            fix, eph, sats = mavlink.GPS_FIX_TYPE_NO_FIX, 0xFFFF, 0
+        cog = int(math.degrees(math.atan2(self._v[1], self._v[0])) % 360 * 100)
+        self._conn.mav.gps_raw_int_send(
+            int((now - self._t0) * 1e6), fix, int(lat * 1e7), int(lon * 1e7), int(alt * 1e3),
+            eph, eph, int(round(math.hypot(*self._v[:2]) * 100)), cog, sats)
+
     def _send_attitude(self, now: float) -> None:
         self._conn.mav.attitude_send(self._boot_ms(now), 0.0, 0.0, self._yaw, 0.0, 0.0, self._yaw_rate)
 
@@ -406,14 +435,19 @@ class MavlinkVehicle:
         if self._ready:  # no EKF origin before
             self._conn.mav.local_position_ned_send(self._boot_ms(now), *self._p, *self._v)
 
-    def _send_global_position(self, now: float) -> None:
+    def _lat_lon_alt(self) -> tuple[float, float, float]:
+        """The true position as latitude, longitude [deg] and altitude AMSL [m]."""
         lat, lon, alt = self.config.home
         n, e, d = self._p
         lat += math.degrees(n / EARTH_RADIUS)
         lon += math.degrees(e / (EARTH_RADIUS * math.cos(math.radians(lat))))
+        return lat, lon, alt - d
+
+    def _send_global_position(self, now: float) -> None:
+        lat, lon, alt = self._lat_lon_alt()
         vn, ve, vd = (int(round(x * 100)) for x in self._v)
         self._conn.mav.global_position_int_send(
-            self._boot_ms(now), int(lat * 1e7), int(lon * 1e7), int((alt - d) * 1e3), int(-d * 1e3),
+            self._boot_ms(now), int(lat * 1e7), int(lon * 1e7), int(alt * 1e3), int(-self._p[2] * 1e3),
             vn, ve, vd, int(math.degrees(self._yaw) % 360 * 100))
 
 
