@@ -179,6 +179,23 @@ class Variable:
         return cls(name, float(lo), float(hi), {k: tuple(v) for k, v in sets.items()})
 
 
+def universe(var: Variable, points: int) -> np.ndarray:
+    """`points` even samples of var's range plus every breakpoint of its sets (a Gaussian's
+    mean), each moved onto the grid where one lies within 1e-9 of the range."""
+    lo, hi = var.lo, var.hi
+    grid = np.linspace(lo, hi, points)
+    tol = 1e-9 * (hi - lo)
+    extra = []
+    for p in var.sets.values():
+        for v in (p[:1] if len(p) == 2 else p):
+            k = int(np.abs(grid - v).argmin())
+            if abs(grid[k] - v) <= tol:
+                grid[k] = v
+            elif lo < v < hi:
+                extra.append(v)
+    return np.union1d(grid, extra)
+
+
 @dataclass(frozen=True)
 class Rule:
     """A parsed rule: antecedent (input index, set index) pairs, consequent set index, weight."""
@@ -280,18 +297,7 @@ class FuzzySystem:
     def _grid(self) -> np.ndarray:
         """Output universe: `resolution` even points plus every breakpoint and centre of the
         output sets, so each set is exactly piecewise linear between grid points."""
-        lo, hi = self.output.lo, self.output.hi
-        grid = np.linspace(lo, hi, self.resolution)
-        tol = 1e-9 * (hi - lo)
-        extra = []
-        for p in self.output.sets.values():
-            for v in (p[:1] if len(p) == 2 else p):
-                k = int(np.abs(grid - v).argmin())
-                if abs(grid[k] - v) <= tol:
-                    grid[k] = v
-                elif lo < v < hi:
-                    extra.append(v)
-        return np.union1d(grid, extra)
+        return universe(self.output, self.resolution)
 
     def evaluate(self, x: Sequence[float]) -> tuple[float, bool]:
         """Crisp output for one input vector (in `inputs` order) and whether it is valid."""

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from uav_vs.control.fuzzy import FuzzySystem, Variable, membership
+from uav_vs.control.fuzzy import FuzzySystem, Variable, membership, universe
 
 
 GAUSSIAN_TOL = 1e-9       # bound on scikit-fuzzy's interpolation error of a Gaussian input set
@@ -22,23 +22,13 @@ GAUSSIAN_TOL = 1e-9       # bound on scikit-fuzzy's interpolation error of a Gau
 def input_universe(var: Variable, points: int | None = None) -> np.ndarray:
     """Samples of an input range for scikit-fuzzy: `points` even ones (default 2001, more
     with Gaussian sets, see the module docstring) plus the sets' breakpoints and means."""
-    lo, hi = var.lo, var.hi
     sigmas = [p[1] for p in var.sets.values() if len(p) == 2]
     if points is None:
         points = 2001
         if sigmas:       # |mu''| <= 1 / sigma^2, so h = sigma sqrt(8 tol) bounds the error by tol
-            points = max(points, math.ceil((hi - lo) / (min(sigmas) * math.sqrt(8 * GAUSSIAN_TOL))) + 1)
-    grid = np.linspace(lo, hi, points)
-    tol = 1e-9 * (hi - lo)
-    extra = []
-    for p in var.sets.values():
-        for v in (p[:1] if len(p) == 2 else p):
-            k = int(np.abs(grid - v).argmin())
-            if abs(grid[k] - v) <= tol:
-                grid[k] = v
-            elif lo < v < hi:
-                extra.append(v)
-    return np.union1d(grid, extra)
+            step = min(sigmas) * math.sqrt(8 * GAUSSIAN_TOL)
+            points = max(points, math.ceil((var.hi - var.lo) / step) + 1)
+    return universe(var, points)
 
 
 def to_skfuzzy(system: FuzzySystem, input_points: int | None = None):
