@@ -29,19 +29,13 @@ LABELS = {'truth': 'simulator truth', 'ground': 'ground/pose (trinocular, sectio
           'odom': 'autopilot/odom (autopilot estimate)'}
 
 
-@dataclass
-class PoseTrack:
-    """Poses of one topic in arrival order: header stamps and arrival times (ns),
-    positions (n, 3) in world ENU, m, and yaws (n,), rad."""
-
-    stamps: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    received: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    yaws: np.ndarray = field(default_factory=lambda: np.zeros(0))
+class _Track:
+    """Columns of a topic's messages in arrival order: header stamps, arrival times (ns), a
+    3-vector and a scalar per message."""
 
     @classmethod
-    def from_rows(cls, rows: list[tuple[int, int, float, float, float, float]]) -> 'PoseTrack':
-        """From (stamp_ns, received_ns, x, y, z, yaw) rows."""
+    def from_rows(cls, rows: list[tuple[int, int, float, float, float, float]]):
+        """From (stamp_ns, received_ns, x, y, z, scalar) rows."""
         if not rows:
             return cls()
         a = np.array(rows, dtype=object)
@@ -53,23 +47,24 @@ class PoseTrack:
 
 
 @dataclass
-class CommandTrack:
-    """cmd_vel as published: stamps and arrival times (ns), linear (n, 3), m/s, yaw rate
-    (n,), rad/s. A command computed from a pose carries that pose's stamp."""
+class PoseTrack(_Track):
+    """Poses: positions (n, 3) in world ENU, m, and yaws (n,), rad."""
+
+    stamps: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    received: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    yaws: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass
+class CommandTrack(_Track):
+    """cmd_vel as published: linear (n, 3), m/s, yaw rate (n,), rad/s. A command computed
+    from a pose carries that pose's stamp."""
 
     stamps: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     received: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     linear: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     yaw_rate: np.ndarray = field(default_factory=lambda: np.zeros(0))
-
-    @classmethod
-    def from_rows(cls, rows: list[tuple[int, int, float, float, float, float]]) -> 'CommandTrack':
-        """From (stamp_ns, received_ns, vx, vy, vz, yaw_rate) rows."""
-        if not rows:
-            return cls()
-        a = np.array(rows, dtype=object)
-        return cls(a[:, 0].astype(np.int64), a[:, 1].astype(np.int64), a[:, 2:5].astype(float),
-                   a[:, 5].astype(float))
 
 
 @dataclass
