@@ -45,10 +45,13 @@ def test_reaches_setpoint_and_lands_on_pad_on_vision_alone(tmp_path):
 
     # The flight's bag replays through the open-loop graph (`make demo BAG=...`): the
     # vision nodes see the recorded (JPEG) frames and are as accurate as in flight.
+    # The recorder kept every frame: as many JPEG images as (reliable) camera_info, but
+    # for a frame or two at the start, before both subscriptions were matched.
     with Bag(tmp_path / 'bag') as bag:
         counts = {t.lstrip('/'): info.count for t, info in bag.topics.items()}
-    assert counts['cam1/image_raw/compressed'] >= 0.95 * len(log.ground_frames)
-    assert counts['onboard/image_raw/compressed'] >= 0.95 * len(log.onboard_frames)
+    for cam in ('cam1', 'cam2', 'cam3', 'onboard'):
+        assert counts[f'{cam}/camera_info'] > 100
+        assert abs(counts[f'{cam}/image_raw/compressed'] - counts[f'{cam}/camera_info']) <= 2, cam
     replay = FlightReport.from_log(replay_flight(tmp_path / 'bag', tmp_path / 'replay'))
     print(replay.summary())
     assert not any(replay.exit_codes.values()), replay.exit_codes
