@@ -70,3 +70,26 @@ def test_polygon_pose_twist_and_stamp_round_trips():
     assert np.array_equal(lin, [1, 2, 3]) and ang[2] == 0.5
     ns = 1_700_000_000_123_456_789
     assert cv.stamp_to_ns(cv.ns_to_stamp(ns)) == ns
+
+
+@pytest.mark.parametrize('encoding, channels, frame_id', [('bgr8', 3, 'cam1_optical'),
+                                                          ('mono8', 1, ''), ('rgba8', 4, 'abc')])
+def test_serialized_image_is_read_in_place_as_rclpy_reads_it(encoding, channels, frame_id):
+    from rclpy.serialization import serialize_message
+    rng = np.random.default_rng(3)
+    pixels = rng.integers(0, 256, (7, 5, channels), np.uint8)
+    msg = Image(header=Header(frame_id=frame_id), height=7, width=5, encoding=encoding,
+                step=5 * channels)
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 1_700_000_123, 456_789
+    msg.data = pixels.tobytes()
+    raw = serialize_message(msg)
+    got = cv.image_from_cdr(raw)
+    assert (got.header, got.height, got.width, got.encoding, got.step) == \
+        (msg.header, 7, 5, encoding, 5 * channels)
+    assert bytes(got.data) == bytes(msg.data)
+    if encoding != 'rgba8':
+        read = cv.image_to_bgr if channels == 3 else cv.image_to_gray
+        np.testing.assert_array_equal(read(got, (5, 7)), read(msg, (5, 7)))
+    for cut in (3, 20, len(raw) - 1):          # truncated anywhere: a clear error
+        with pytest.raises(cv.MessageError, match='malformed serialized image'):
+            cv.image_from_cdr(raw[:cut])

@@ -12,14 +12,13 @@ import time
 
 import numpy as np
 from geometry_msgs.msg import PolygonStamped
-from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
 from uav_vs.ros.convert import bgr_to_image, points_to_polygon
 from uav_vs.ros.ground_params import declare_cameras, declare_landmarks
 from uav_vs.ros.image_input import QOS_CHOICES, ImageInput
-from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, run
+from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, QuietPublisherNode, run
 from uav_vs.ros.params import Param, T, declare
 from uav_vs.vision.colour_model import models_from_params
 from uav_vs.vision.landmarks import DetectorParams, LandmarkDetector, centroids
@@ -58,7 +57,7 @@ NODE_PARAMS = [
 ]
 
 
-class CamshiftNode(Node):
+class CamshiftNode(QuietPublisherNode):
     def __init__(self) -> None:
         super().__init__('camshift_node')
         p = declare(self, NODE_PARAMS)

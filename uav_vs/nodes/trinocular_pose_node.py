@@ -10,12 +10,11 @@ Publishes `ground/pose` (PoseStamped, `world` ENU), `ground/landmarks`
 """
 import numpy as np
 from geometry_msgs.msg import PolygonStamped, PoseStamped
-from rclpy.node import Node
 from std_msgs.msg import Header
 
 from uav_vs.ros.convert import (ns_to_stamp, points_to_polygon, polygon_to_array, pose_to_msg,
                                 stamp_to_ns)
-from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, run
+from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, QuietPublisherNode, run
 from uav_vs.ros.params import Param, T, declare
 from uav_vs.vision.body_pose import solve_pose
 from uav_vs.vision.frame_sync import FrameSync
@@ -43,7 +42,7 @@ NODE_PARAMS = [
 ]
 
 
-class TrinocularPoseNode(Node):
+class TrinocularPoseNode(QuietPublisherNode):
     def __init__(self) -> None:
         super().__init__('trinocular_pose_node')
         self.cfg = load_ground_config({**declare_cameras(self), **declare_landmarks(self)})
@@ -83,6 +82,7 @@ class TrinocularPoseNode(Node):
             self.process(frame_set)
 
     def process(self, frame_set) -> None:
+        """Triangulate and solve one frame set; the pose goes out first, the rest after it."""
         self.counts['frame_sets'] += 1
         absent = np.full((self.n_lm, 2), np.nan)
         pixels = np.stack([absent if item is None else item for item in frame_set.items])
@@ -90,6 +90,9 @@ class TrinocularPoseNode(Node):
                           max_reproj_px=self.max_reproj)
         pose = solve_pose(self.cfg.layout, tri.points, method=self.pose_method)
         header = Header(stamp=ns_to_stamp(frame_set.stamp_ns), frame_id=self.frame_id)
+        if pose.ok:
+            self.pose_pub.publish(pose_to_msg(pose.position, pose.quaternion, header))
+        self.counts['poses' if pose.ok else 'no_pose'] += 1
         self.landmarks_pub.publish(points_to_polygon(tri.points, header))
         finite = np.isfinite(tri.reproj_px)
         self.last = dict(reason=pose.reason if not pose.ok else '',
@@ -97,11 +100,6 @@ class TrinocularPoseNode(Node):
                          reprojection_px=float(np.mean(tri.reproj_px[finite])) if finite.any()
                          else float('nan'),
                          residual_m=pose.residual_rms)
-        if not pose.ok:
-            self.counts['no_pose'] += 1
-            return
-        self.counts['poses'] += 1
-        self.pose_pub.publish(pose_to_msg(pose.position, pose.quaternion, header))
 
     def publish_diagnostics(self) -> None:
         if self.last['reason']:

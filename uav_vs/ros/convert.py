@@ -1,19 +1,25 @@
 """The one place that converts between ROS messages and numpy.
 
 Images follow the measured fast paths: `np.frombuffer` to read (zero copy) and
-`tobytes()` to fill (never assign an ndarray to `msg.data`).
+`tobytes()` to fill (never assign an ndarray to `msg.data`). A raw image is best
+taken serialized (`raw=True`) and read with `image_from_cdr`: rclpy's own
+deserialization copies the pixels three times.
 """
 import math
+import struct
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point32, Polygon, PolygonStamped, PoseStamped, TwistStamped
 from nav_msgs.msg import Odometry
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 _CHANNELS = {'bgr8': 3, 'rgb8': 3, 'bgra8': 4, 'rgba8': 4, 'mono8': 1}
+_CDR_BYTE_ORDER = {b'\x00\x00': '>', b'\x00\x01': '<'}   # encapsulation CDR_BE, CDR_LE
 
 
 class MessageError(ValueError):
@@ -28,7 +34,64 @@ def ns_to_stamp(ns: int) -> Time:
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
-def image_to_bgr(msg: Image, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+@dataclass(frozen=True)
+class RawImage:
+    """The fields of a sensor_msgs/Image; `data` is a view of the serialized message."""
+
+    header: Header
+    height: int
+    width: int
+    encoding: str
+    is_bigendian: int
+    step: int
+    data: memoryview
+
+
+def image_from_cdr(raw: bytes) -> RawImage | Image:
+    """A serialized sensor_msgs/Image read without copying its pixels.
+
+    Plain CDR (either byte order) is read field by field; any other encapsulation is
+    deserialized by rclpy. A truncated or inconsistent message raises MessageError.
+    """
+    order = _CDR_BYTE_ORDER.get(bytes(raw[:2]))
+    if order is None:
+        try:
+            return deserialize_message(raw, Image)
+        except RuntimeError as err:
+            raise MessageError(f'malformed serialized image: {err}') from None
+    body = memoryview(raw)[4:]
+    try:
+        sec, nanosec = struct.unpack_from(order + 'iI', body, 0)
+        frame_id, pos = _cdr_string(body, 8, order)
+        height, width = struct.unpack_from(order + 'II', body, _align4(pos))
+        encoding, pos = _cdr_string(body, _align4(pos) + 8, order)
+        is_bigendian = body[pos]
+        pos = _align4(pos + 1)
+        step, size = struct.unpack_from(order + 'II', body, pos)
+    except (struct.error, IndexError, UnicodeDecodeError) as err:
+        raise MessageError(f'malformed serialized image: {err}') from None
+    if pos + 8 + size > len(body):
+        raise MessageError(f'malformed serialized image: {size} data bytes announced, '
+                           f'{len(body) - pos - 8} present')
+    return RawImage(Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id), height,
+                    width, encoding, is_bigendian, step, body[pos + 8:pos + 8 + size])
+
+
+def _cdr_string(body: memoryview, pos: int, order: str) -> tuple[str, int]:
+    """The CDR string at `pos` (its length counts the closing NUL) and the offset after it."""
+    (size,) = struct.unpack_from(order + 'I', body, pos)
+    end = pos + 4 + size
+    if size == 0 or end > len(body):
+        raise IndexError(f'string of {size} bytes at offset {pos}')
+    return str(body[pos + 4:end - 1], 'utf-8'), end
+
+
+def _align4(pos: int) -> int:
+    return pos + -pos % 4
+
+
+def image_to_bgr(msg: Image | RawImage,
+                 expected_size: tuple[int, int] | None = None) -> np.ndarray:
     """sensor_msgs/Image (bgr8, rgb8, bgra8, rgba8, mono8) to a BGR uint8 array.
 
     `expected_size` is (width, height); anything else raises MessageError.
@@ -158,7 +221,8 @@ def msg_to_odometry(msg: Odometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
             np.array([v.x, v.y, v.z]), np.array([w.x, w.y, w.z]))
 
 
-def image_to_gray(msg: Image, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+def image_to_gray(msg: Image | RawImage,
+                  expected_size: tuple[int, int] | None = None) -> np.ndarray:
     """sensor_msgs/Image to an 8-bit grey array (mono8 without a copy); as image_to_bgr."""
     if msg.encoding != 'mono8':
         return cv2.cvtColor(image_to_bgr(msg, expected_size), cv2.COLOR_BGR2GRAY)

@@ -6,10 +6,17 @@ from typing import Callable
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
+from rclpy.publisher import Publisher
 
 from uav_vs.ros.params_file import check_params_files
+
+# For create_publisher(event_callbacks=...): no event handlers. rclpy's two default ones
+# (they log an incompatible QoS or type) are polled on every executor wake, ~10 us each;
+# the subscribing side reports the same mismatches.
+NO_PUBLISHER_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 _HEAP_KEEP_BYTES = 32 << 20
@@ -63,12 +70,21 @@ def run(factory: Callable[[], Node], name: str, args: list[str] | None = None,
         rclpy.try_shutdown()
 
 
+class QuietPublisherNode(Node):
+    """A Node whose publishers, /parameter_events included, default to NO_PUBLISHER_EVENTS."""
+
+    def create_publisher(self, *args, **kwargs) -> Publisher:
+        kwargs.setdefault('event_callbacks', NO_PUBLISHER_EVENTS)
+        return super().create_publisher(*args, **kwargs)
+
+
 class Diagnostics:
     """Publishes one DiagnosticStatus for a node on /diagnostics."""
 
     def __init__(self, node: Node, hardware_id: str = '') -> None:
         self._node = node
-        self._pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10,
+                                          event_callbacks=NO_PUBLISHER_EVENTS)
         self._name = node.get_fully_qualified_name()
         self._hardware_id = hardware_id
 
