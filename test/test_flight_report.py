@@ -29,10 +29,11 @@ def make_log() -> FlightLog:
     odom_t = (odom_stamps - T0) * 1e-9
     odom = track(odom_stamps, np.column_stack([odom_t, 0.5 * odom_t, np.full_like(odom_t, 1.5)]),
                  0.1 * odom_t)
-    # Commands: one per frame (latency 30 + k ms), and timer ones stamped in between.
+    # Commands: one per frame (latency 30 + k ms), the timer's re-send of it (same stamp,
+    # later) and timer ones stamped in between.
     k = np.arange(len(frames))
-    stamps = np.concatenate([frames, frames + 7 * MS])
-    received = np.concatenate([frames + (30 + k) * MS, frames + 8 * MS])
+    stamps = np.concatenate([frames, frames, frames + 7 * MS])
+    received = np.concatenate([frames + (30 + k) * MS, frames + (90 + k) * MS, frames + 8 * MS])
     commands = CommandTrack(stamps, received, np.zeros((len(stamps), 3)), np.zeros(len(stamps)))
     hold = SetpointEvent('hold', 'ground', (2.0, 1.0, 1.5, 0.2), int(frames[10]),
                          settled_ns=int(frames[20]), reached_ns=int(frames[30]))
@@ -52,9 +53,9 @@ def test_sources_commands_and_setpoints_are_scored_exactly():
     assert odom.samples == 49 and odom.position_rmse_m < 1e-9 and odom.yaw_rmse_deg < 1e-9
     assert report.sources['onboard'].samples == 0
 
-    latency = command_latencies(log)      # only the commands that carry a frame's stamp
-    np.testing.assert_allclose(np.sort(latency), 30.0 + np.arange(50))
-    assert report.commands.commands == 100 and report.commands.from_images == 50
+    latency = command_latencies(log)      # the first command that carries each frame's stamp
+    np.testing.assert_allclose(latency, 30.0 + np.arange(50))
+    assert report.commands.commands == 150 and report.commands.from_images == 50
     assert report.commands.latency_median_ms == pytest.approx(54.5)
     assert report.commands.latency_p95_ms == pytest.approx(np.percentile(30.0 + np.arange(50), 95))
 

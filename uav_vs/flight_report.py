@@ -170,7 +170,7 @@ class CommandScore:
     the image's stamp to the command's arrival, the whole graph's latency."""
 
     commands: int                    # all cmd_vel received
-    from_images: int                 # ... that carry a camera frame's stamp
+    from_images: int                 # camera frames a command was computed from
     latency_median_ms: float
     latency_p95_ms: float
 
@@ -228,9 +228,9 @@ class FlightReport:
                          f' yaw RMSE {s.yaw_rmse_deg:.2f} deg{latency}')
         c = self.commands
         if c.from_images:
-            lines.append(f'cmd_vel: {c.commands} commands, {c.from_images} computed from a vision '
-                         f'pose; image stamp to command: median {c.latency_median_ms:.1f} ms, '
-                         f'p95 {c.latency_p95_ms:.1f} ms')
+            lines.append(f'cmd_vel: {c.commands} commands, from the vision poses of '
+                         f'{c.from_images} frames; image stamp to command: median '
+                         f'{c.latency_median_ms:.1f} ms, p95 {c.latency_p95_ms:.1f} ms')
         if self.setpoints:
             lines.append('setpoints (true error over the hold):')
         for s in self.setpoints:
@@ -290,11 +290,15 @@ def score_source(track: PoseTrack, truth: PoseTrack, exact: bool, start_ns: int,
 
 
 def command_latencies(log: FlightLog) -> np.ndarray:
-    """Arrival minus stamp (ms) of the commands stamped with a camera frame's stamp, those
-    computed from the vision pose of that frame."""
+    """Arrival minus stamp (ms) of the first command stamped with each camera frame's
+    stamp: the one computed from that frame's vision pose (the controller's timer may
+    send it again, with the same stamp, until the next pose)."""
     c = log.commands
     from_images = np.isin(c.stamps, np.concatenate([log.ground_frames, log.onboard_frames]))
-    return (c.received[from_images] - c.stamps[from_images]) * 1e-6
+    stamps, index = np.unique(c.stamps[from_images], return_inverse=True)
+    first = np.full(len(stamps), np.iinfo(np.int64).max)
+    np.minimum.at(first, index, c.received[from_images])
+    return (first - stamps) * 1e-6
 
 
 def score_commands(log: FlightLog) -> CommandScore:
