@@ -82,7 +82,7 @@ def replay_flight(bag: Path, log_dir: Path, configs: Configs = Configs(), rate: 
               and all(rec.node.count_publishers(t) for t in made), startup_timeout)
         if 'fuzzy_controller_node' in procs:
             _wait(procs, lambda: CONTROLLER in rec.reporting, startup_timeout)
-        offset = _publish(pubs, inputs, rate)
+        t0 = pubs.play(inputs, rate)
         pubs.wait_for_all_acked(10.0)
         _wait(procs, lambda: False, settle_s, quiet=True)
     finally:
@@ -91,8 +91,9 @@ def replay_flight(bag: Path, log_dir: Path, configs: Configs = Configs(), rate: 
         rec.close()
     log.exit_codes = codes
     log.onboard_start_ns = onboard_init[0] if onboard_init else None
-    for track in (log.truth, log.ground, log.onboard, log.odom, log.commands):
-        track.received = offset(track.received)
+    scale, t0_bag = (rate if rate > 0 else 1.0), inputs[0].t_ns
+    for track in (log.truth, log.ground, log.onboard, log.odom, log.commands):   # to bag time
+        track.received = (t0_bag + (track.received - t0) * scale).astype(np.int64)
     return log
 
 
@@ -122,20 +123,6 @@ def _init_args(first: tuple[int, PoseStamped] | None) -> list[str]:
     return ['-p', 'init.mode:=pose',
             '-p', 'init.position:=[{:.6f}, {:.6f}, {:.6f}]'.format(*position),
             '-p', 'init.rpy:=[{:.7f}, {:.7f}, {:.7f}]'.format(*rpy)]
-
-
-def _publish(pubs: RawPublishers, messages: list[BagMessage], rate: float):
-    """Publish at the recorded times scaled by 1 / rate (0: at once); return the map of
-    arrival times (ns, this clock) onto the bag's clock."""
-    t0_bag, t0 = messages[0].t_ns, time.time_ns()
-    for m in messages:
-        if rate > 0:
-            delay = (m.t_ns - t0_bag) / rate - (time.time_ns() - t0)
-            if delay > 0:
-                time.sleep(delay * 1e-9)
-        pubs.publish(m.topic, m.msgtype, m.raw)
-    scale = rate if rate > 0 else 1.0
-    return lambda received: (t0_bag + (np.asarray(received, np.int64) - t0) * scale).astype(np.int64)
 
 
 def _wait(procs: dict, predicate, timeout: float, quiet: bool = False) -> None:

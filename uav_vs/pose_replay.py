@@ -74,13 +74,7 @@ def replay_bag(bag: Path, start_nodes: Callable[[], list[Popen]], pose_topic: st
     try:
         _wait(executor, lambda: all(p.get_subscription_count() > 0 for p in image_pubs)
               and pose_sub.get_publisher_count() > 0, start_timeout_s, procs)
-        t0_bag, t0 = messages[0].t_ns, time.monotonic()
-        for b in messages:
-            delay = (b.t_ns - t0_bag) / 1e9 / rate - (time.monotonic() - t0) if rate > 0 else 0
-            if delay > 0:
-                time.sleep(delay)
-            pubs.publish(b.topic, b.msgtype, b.raw)
-            executor.spin_once(timeout_sec=0)
+        pubs.play(messages, rate, lambda: executor.spin_once(timeout_sec=0))
         pubs.wait_for_all_acked(10.0)
         _wait(executor, lambda: len(poses) >= len(truth), settle_s, procs)
     finally:

@@ -1,6 +1,8 @@
 """Publish recorded (raw CDR) messages with real rclpy publishers of the recorded type,
 and convert QoS between rclpy and bag metadata."""
 import importlib
+import time
+from typing import Callable, Sequence
 
 from rclpy.duration import Duration
 from rclpy.node import Node
@@ -9,7 +11,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
                                 QosTime)
 
-from uav_vs.bag.reader import QosOffer
+from uav_vs.bag.reader import BagMessage, QosOffer
 
 
 def message_class(msgtype: str) -> type:
@@ -58,6 +60,21 @@ class RawPublishers:
 
     def publish(self, topic: str, msgtype: str, raw: bytes) -> None:
         self.publisher(topic, msgtype).publish(raw)
+
+    def play(self, messages: Sequence[BagMessage], rate: float,
+             after_each: Callable[[], None] | None = None) -> int:
+        """Publish `messages` at their recorded times scaled by 1 / rate (0: at once),
+        calling `after_each` after every one; return the wall time (ns) of the first."""
+        t0_bag, t0, start = messages[0].t_ns, time.monotonic(), time.time_ns()
+        for m in messages:
+            if rate > 0:
+                delay = (m.t_ns - t0_bag) * 1e-9 / rate - (time.monotonic() - t0)
+                if delay > 0:
+                    time.sleep(delay)
+            self.publish(m.topic, m.msgtype, m.raw)
+            if after_each is not None:
+                after_each()
+        return start
 
     def wait_for_all_acked(self, timeout_s: float) -> bool:
         return all(p.wait_for_all_acked(Duration(seconds=timeout_s)) for p in self._pubs.values())
