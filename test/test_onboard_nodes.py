@@ -280,7 +280,8 @@ def test_yaml_template_is_found_from_any_working_directory(tmp_path, ros_node):
                                      lambda m: found.append(m.data), RELIABLE)
         pub = ros_node.create_publisher(CompressedImage, '/onboard/image_raw/compressed',
                                         RELIABLE)
-        assert wait_for(lambda: pub.get_subscription_count() > 0, 30), log.read_text()
+        assert wait_for(lambda: pub.get_subscription_count() > 0
+                        and 'template ' in log.read_text(), 30), log.read_text()
         assert f"template {ASSETS / 'box.png'} (" in log.read_text()
         pub.publish(bgr_to_compressed(pasted_box()[0], header(0)))
         assert wait_for(lambda: found == [True], 30), (found, log.read_text())
