@@ -207,6 +207,7 @@ def test_textureless_and_blurred_frames_give_no_pose_and_diagnostics_say_why(
     assert wait_for(lambda: probe.value('frames') == '5', 15), probe.status
     assert sorted(probe.poses) == [stamps[0], stamps[1], stamps[4]]
     assert probe.status.level == DiagnosticStatus.OK and probe.value('poses') == '3'
+    assert probe.value('relocalisations') == '0'      # the last good frame still predicts it
     R, p_true = truth[4]
     p, q = msg_to_pose(probe.poses[stamps[4]])
     assert np.linalg.norm(p - p_true) < 0.01 * p_true[2]

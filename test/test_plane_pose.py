@@ -199,6 +199,58 @@ def test_textureless_and_blurred_frames_are_losses_then_tracking_resumes(cfg):
     assert est.lost_frames == 0
 
 
+def lost_then_back(cfg, params, t_lost: float, gap: float, n_back: int = 4, seed: int = 4):
+    """Tracking from t_lost, texture-less frames for `gap` s while the vehicle flies on,
+    then n_back frames of ground: (estimator, poses of the ground frames, their truth)."""
+    scene = OnboardScene(cfg.camera, cfg.camera_to_body, seed=seed)
+    blank = OnboardScene(cfg.camera, cfg.camera_to_body, np.full((8, 8, 3), 140, np.uint8),
+                         seed=seed)
+    traj = Trajectory()
+    est = PlanePoseEstimator(cfg.camera, params, cfg.camera_to_body)
+    R, p = traj.sample(t_lost)
+    assert est.initialise(jpeg_grey(scene.render(R, p)), scene.homography(R, p)).ok
+    n_lost = round(gap * 15)
+    for k in range(1, n_lost):
+        assert not est.update(jpeg_grey(blank.render(*traj.sample(t_lost + k / 15)))).ok
+    truth = [traj.sample(t_lost + k / 15) for k in range(n_lost, n_lost + n_back)]
+    return est, [est.update(jpeg_grey(scene.render(R, p))) for R, p in truth], truth
+
+
+def test_tracking_recovers_by_relocalisation_after_the_vehicle_moved_on(cfg):
+    """1.5 s without texture while the vehicle moves 1.8 m at 3 m: L-K from the last good
+    frame finds nothing; matching the keyframe by ORB gives the pose back at once."""
+    est, poses, truth = lost_then_back(cfg, cfg.params, 3.0, 1.5)
+    assert all(r.ok for r in poses), [r.reason for r in poses]
+    for r, (_, p) in zip(poses, truth):
+        assert np.linalg.norm(r.position - p) < 0.01 * p[2]
+    assert poses[0].stats['relocalised'] and est.relocalisations == 1
+    assert 'relocalised' not in poses[1].stats       # then tracked as usual
+    assert np.linalg.norm(truth[0][1] - Trajectory().sample(3.0)[1]) > 1.5
+    off, poses, _ = lost_then_back(cfg, replace(cfg.params, relocalise_after=0), 3.0, 1.5)
+    assert not any(r.ok for r in poses) and off.relocalisations == 0
+    assert 'too few tracked features' in poses[0].reason
+
+
+def test_relocalisation_refuses_a_jump_farther_than_max_shift(cfg):
+    """The same recovery with max_shift below the true move (1.8 m at 3 m height) is
+    refused; then no pose, never a wrong one."""
+    est, poses, _ = lost_then_back(cfg, replace(cfg.params, relocalise_max_shift=0.3), 3.0, 1.5)
+    assert not any(r.ok for r in poses) and est.relocalisations == 0
+
+
+def test_relocalisation_does_not_jump_to_a_copy_of_the_ground(cfg):
+    """The simulated ground repeats every 4.8 m north-south (mirrored photographs). After
+    this loss, SIFT matches the keyframe best to the copy: without the max_shift check
+    that is a pose 4.8 m off; with it, every pose given is right."""
+    sift = replace(cfg.params, relocalise_features='sift')
+    _, poses, truth = lost_then_back(cfg, replace(sift, relocalise_max_shift=100.0), 6.0, 1.5)
+    errors = [np.linalg.norm(r.position - p) for r, (_, p) in zip(poses, truth) if r.ok]
+    assert errors and min(errors) == pytest.approx(4.8, abs=0.05)
+    _, poses, truth = lost_then_back(cfg, sift, 6.0, 1.5)
+    for r, (_, p) in zip(poses, truth):
+        assert not r.ok or np.linalg.norm(r.position - p) < 0.01 * p[2]
+
+
 def test_textureless_frame_is_a_loss_even_without_the_sharpness_test(cfg):
     """Second line of defence: no trackable features, no pose (never a made-up one)."""
     params = replace(cfg.params, min_sharpness=0.0)

@@ -8,11 +8,12 @@ keys of uav_vs.vision.onboard_config.SETTINGS), not from CameraInfo.
 
 Each frame goes through PlanePoseEstimator: keyframe-to-frame pyramidal L-K tracks
 (section 2.1.2), robust homography (section 2.3, Algorithm 1) chained onto the
-keyframe's plane homography and decomposed (eq 27), refined on the inliers.
+keyframe's plane homography and decomposed (eq 27), refined on the inliers; after a
+loss, the keyframe is found again by descriptor matches (section 2.2, `relocalise.*`).
 Publishes `onboard/pose` (geometry_msgs/PoseStamped, frame `homography_pose.frame_id`
 = `world` ENU: the base_link pose, stamped with the image's stamp) only for frames that
 gave a pose, and /diagnostics: tracked features, inliers, RANSAC trials, reprojection
-RMS, re-anchors, lost frames, malformed images and, when lost, why.
+RMS, re-anchors, relocalisations, lost frames, malformed images and, when lost, why.
 
 The first image initialises the estimator (init.*); until that succeeds (a blurred or
 texture-less first frame) every new image retries. Frames reach it through
@@ -47,7 +48,8 @@ NODE_PARAMS = [
           'estimators (repeatable runs)', 0, 2**31 - 1),
 ]
 
-STATS = ('sharpness', 'tracked', 'inliers', 'trials', 'rms_px', 'reanchors', 'lost_frames')
+STATS = ('sharpness', 'tracked', 'inliers', 'trials', 'rms_px', 'reanchors', 'relocalisations',
+         'lost_frames')
 
 
 class HomographyPoseNode(Node):

@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from uav_vs.vision.camera import CalibrationError, Camera
+from uav_vs.vision.features import KINDS
 from uav_vs.vision.homography import METHODS
 from uav_vs.vision.klt import KltParams
 from uav_vs.vision.plane_pose import PlanePoseParams, camera_pose, plane_homography
@@ -99,6 +100,15 @@ SETTINGS = (
             4, 5000),
     Setting('keyframe.reanchor_coverage', 'float', 0.35, "re-anchor when the inliers' bounding "
             'box covers less than this fraction of the image', 0.0, 0.99),
+    Setting('relocalise.after_frames', 'int', 2, 'consecutive lost frames before the keyframe '
+            'is matched by descriptors; 0 never', 0, 10000),
+    Setting('relocalise.features', 'str', 'orb', 'descriptor for relocalisation', choices=KINDS),
+    Setting('relocalise.max_features', 'int', 1000, 'keypoints per image for relocalisation; '
+            '0 = every SIFT keypoint', 0, 100000),
+    Setting('relocalise.ratio', 'float', 0.8, "Lowe's ratio test for relocalisation matches",
+            0.1, 1.0),
+    Setting('relocalise.max_shift', 'float', 1.0, 'a relocalised camera farther than this '
+            'times its last height from its last position is refused', 0.0, 100.0),
     Setting('image_quality.blur_level', 'int', 2, 'pyramid level the sharpness is measured on',
             0, 4),
     Setting('image_quality.min_sharpness', 'float', 50.0, 'variance of the Laplacian below '
@@ -154,7 +164,9 @@ def load_onboard_config(params: Mapping[str, object]) -> OnboardConfig:
         v['keyframe.reanchor_inliers'], v['keyframe.reanchor_coverage'],
         v['homography.method'], v['homography.threshold_px'], v['homography.confidence'],
         v['homography.max_trials'], v['pose.max_rms_px'], v['image_quality.blur_level'],
-        v['image_quality.min_sharpness'])
+        v['image_quality.min_sharpness'], v['relocalise.after_frames'],
+        v['relocalise.features'], v['relocalise.max_features'], v['relocalise.ratio'],
+        v['relocalise.max_shift'])
     return OnboardConfig(camera, T, H0, pose, v['init.mode'])
 
 

@@ -22,6 +22,16 @@ product of every frame-to-frame matrix, decomposed, and the pose refined by
 Levenberg-Marquardt on the inliers' plane points. When inliers or image coverage drop,
 the current frame becomes the new keyframe (a re-anchor): tracks that survive keep
 their plane points, new features get theirs from the current estimate.
+
+Relocalisation: L-K only converges near its prediction, so after a loss during which
+the vehicle kept moving (occlusion, blur, a dropout) the last good homography no
+longer predicts the frame. From the `relocalise_after`-th consecutive lost frame on,
+the keyframe is also matched against the frame by descriptors (section 2.2: SIFT or
+ORB, FLANN, ratio test) and a robust homography (section 2.3); that homography becomes
+the prediction for the usual keyframe tracking, which alone decides whether the
+frame has a pose, so a wrong match costs a retry. Only a repeated ground texture can
+look right in the wrong place: a match that moves the camera farther than
+`relocalise_max_shift` times its height from its last good position is refused.
 """
 from dataclasses import dataclass, field, replace
 
@@ -30,6 +40,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from uav_vs.vision.camera import Camera
+from uav_vs.vision.features import detect_and_describe, make_matcher, match
 from uav_vs.vision.homography import estimate_homography
 from uav_vs.vision.klt import KltParams, KltTracker
 
@@ -53,6 +64,11 @@ class PlanePoseParams:
     max_rms_px: float = 1.5          # refined pose reprojection RMS above this: loss
     blur_level: int = 2              # pyramid level the sharpness is measured on
     min_sharpness: float = 50.0      # variance of the Laplacian at blur_level below: loss
+    relocalise_after: int = 2        # consecutive lost frames before matching features; 0 never
+    relocalise_features: str = 'orb'  # descriptor for relocalisation (features.KINDS)
+    relocalise_max_features: int = 1000  # keypoints per image for relocalisation
+    relocalise_ratio: float = 0.8    # Lowe's ratio test for relocalisation matches
+    relocalise_max_shift: float = 1.0  # camera moved farther than this x its height: refused
 
 
 @dataclass
@@ -152,7 +168,10 @@ class PlanePoseEstimator:
         self._xyz = np.empty((0, 3))                # their plane points (X, Y, 0), m
         self._H_prev = np.eye(3)                    # keyframe -> last good frame (ideal px)
         self._motion = np.eye(3)                    # last good inter-frame homography
+        self._key_features: tuple | None = None    # keyframe's ideal px, descriptor index
+        self._centre = np.zeros(3)                  # camera centre of the last good frame, m
         self.reanchors = 0
+        self.relocalisations = 0
         self.lost_frames = 0
 
     @property
@@ -185,7 +204,8 @@ class PlanePoseEstimator:
                               f'{self.params.min_tracks})', {**stats, 'tracked': len(new)})
         self._kf_px, self._xyz = np.empty((0, 2)), np.empty((0, 3))
         self._new_keyframe(gray, H0 / H0[2, 2], new)
-        self.reanchors, self.lost_frames, self._motion = 0, 0, np.eye(3)
+        self.reanchors, self.relocalisations, self.lost_frames = 0, 0, 0
+        self._motion = np.eye(3)
         R, t = pose_from_plane_homography(self.camera.K, H0)
         return self._result(R, t, {**stats, 'tracked': len(new), 'inliers': len(new),
                                    'trials': 0, 'rms_px': 0.0, 'reanchored': True})
@@ -202,15 +222,34 @@ class PlanePoseEstimator:
         stats: dict = {'sharpness': round(sharpness(gray, p.blur_level), 1)}
         if stats['sharpness'] < p.min_sharpness:
             return self._lost(self._blurred(stats['sharpness']), stats)
+        result = self._track(gray, self._motion @ self._H_prev, self._H_prev, stats)
+        if isinstance(result, str) and 0 < p.relocalise_after <= self.lost_frames + 1:
+            H = self._relocalise(gray)
+            if H is not None:
+                tracks = self._kf_px, self._xyz
+                self._reseed_overlap(H)
+                retry = self._track(gray, H, H, dict(stats))
+                if not isinstance(retry, str):
+                    self.relocalisations += 1
+                    retry.stats.update(relocalised=True, relocalisations=self.relocalisations)
+                    return retry
+                self._kf_px, self._xyz = tracks
+                result = f'{result}; relocalised, then {retry}'
+        return self._lost(result, stats) if isinstance(result, str) else result
+
+    def _track(self, gray: np.ndarray, H_pred: np.ndarray, H_prev: np.ndarray, stats: dict
+               ) -> PlanePose | str:
+        """Keyframe tracking from the predicted keyframe-to-frame homography H_pred; H_prev
+        is the homography the motion model starts from. The pose, or why there is none."""
+        p = self.params
         # Track the keyframe's features from the keyframe warped by the predicted
         # keyframe-to-frame homography: no drift accumulates within a keyframe.
-        H_pred = self._motion @ self._H_prev
         template = self._warp.warp(self._key, H_pred)
         start = self._warp.distort(_apply(H_pred, self._kf_px))
         raw, ok = self.klt.track(template, gray, start)
         stats['tracked'] = n = int(ok.sum())
         if n < p.min_tracks:
-            return self._lost(f'too few tracked features ({n} < {p.min_tracks})', stats)
+            return f'too few tracked features ({n} < {p.min_tracks})'
         pts, xyz, kf_px = self.camera.undistort(raw[ok]), self._xyz[ok], self._kf_px[ok]
         est = estimate_homography(kf_px, pts, method=p.method, threshold_px=p.threshold_px,
                                   confidence=p.confidence, max_trials=p.max_trials,
@@ -218,7 +257,7 @@ class PlanePoseEstimator:
         stats['trials'] = est.trials
         stats['inliers'] = int(est.inliers.sum()) if est.ok else 0
         if not est.ok:
-            return self._lost(f'homography: {est.reason}', stats)
+            return f'homography: {est.reason}'
         pts, xyz, kf_px = pts[est.inliers], xyz[est.inliers], kf_px[est.inliers]
         # Chain the keyframe-to-frame homography onto the keyframe's plane homography
         # (eq 27), decompose, then refine the pose on the inliers' plane points.
@@ -230,10 +269,10 @@ class PlanePoseEstimator:
         rms = float(np.sqrt(np.mean(np.sum((proj[:, :2] / proj[:, 2:] - pts) ** 2, axis=1))))
         stats['rms_px'] = round(rms, 3)
         if not rms <= p.max_rms_px:
-            return self._lost(f'reprojection RMS {rms:.2f} px > {p.max_rms_px:g}', stats)
+            return f'reprojection RMS {rms:.2f} px > {p.max_rms_px:g}'
         if np.any(proj[:, 2] <= 0):
-            return self._lost('plane behind the camera', stats)
-        self._motion = est.H @ np.linalg.inv(self._H_prev)
+            return 'plane behind the camera'
+        self._motion = est.H @ np.linalg.inv(H_prev)
         self._H_prev, self._kf_px, self._xyz = est.H, kf_px, xyz
         self.lost_frames = 0
         stats['reanchored'] = bool(self._needs_reanchor(pts))
@@ -246,6 +285,50 @@ class PlanePoseEstimator:
             self.reanchors += 1
         return self._result(R, t, stats)
 
+    def _relocalise(self, gray: np.ndarray) -> np.ndarray | None:
+        """Keyframe-to-frame homography (ideal px) from descriptor matches, or None."""
+        p = self.params
+        if self._key_features is None:      # described once per keyframe, when first needed
+            xy, desc = detect_and_describe(self._key, p.relocalise_features,
+                                           p.relocalise_max_features)
+            index = None
+            if len(xy) >= p.min_inliers:
+                index = make_matcher(p.relocalise_features)
+                index.add([desc])
+                index.train()
+                xy = self.camera.undistort(xy)
+            self._key_features = (xy, index)
+        kf_px, index = self._key_features
+        if index is None:
+            return None
+        xy, desc = detect_and_describe(gray, p.relocalise_features, p.relocalise_max_features)
+        i_frame, i_key = match(desc, None, p.relocalise_features, p.relocalise_ratio,
+                               matcher=index)
+        if len(i_frame) < p.min_inliers:
+            return None
+        est = estimate_homography(kf_px[i_key], self.camera.undistort(xy[i_frame]),
+                                  method=p.method, threshold_px=p.threshold_px,
+                                  confidence=p.confidence, max_trials=p.max_trials,
+                                  min_inliers=p.min_inliers, rng=self._rng)
+        if not est.ok:
+            return None
+        # A repeated texture can match elsewhere: refuse a jump no flight could have made.
+        R, t = pose_from_plane_homography(self.camera.K, est.H @ self._H_k)
+        shift = np.linalg.norm(-R.T @ t - self._centre)
+        return est.H if shift <= p.relocalise_max_shift * self._centre[2] else None
+
+    def _reseed_overlap(self, H: np.ndarray) -> None:
+        """Tracks for a relocalised frame: the keyframe's tracks that H maps into the frame,
+        topped up with keyframe features where the frame overlaps it (plane points from H_k)."""
+        p = self.params
+        raw = self._warp.distort(_apply(H, self._kf_px))
+        m = p.klt.win_size // 2 + 1
+        keep = np.all((raw >= m) & (raw < [self.camera.width - m, self.camera.height - m]), axis=1)
+        self._kf_px, self._xyz = self._kf_px[keep], self._xyz[keep]
+        overlap = self._warp.warp(self._region, np.linalg.inv(H))
+        self._add_tracks(self.klt.top_up(self._key, self._warp.distort(self._kf_px),
+                                         p.max_features, (overlap > 127).astype(np.uint8) * 255))
+
     def _needs_reanchor(self, pts: np.ndarray) -> bool:
         """Too few inliers, or they cover too little of the image (overlap dropping)."""
         if len(pts) < self.params.reanchor_inliers:
@@ -256,11 +339,17 @@ class PlanePoseEstimator:
 
     def _new_keyframe(self, gray: np.ndarray, H_k: np.ndarray, new_raw: np.ndarray) -> None:
         """Make gray the keyframe with plane homography H_k; add features `new_raw` (raw px)."""
-        ideal = self.camera.undistort(new_raw) if len(new_raw) else np.empty((0, 2))
-        xy = _apply(np.linalg.inv(H_k), ideal)
         self._key, self._H_k, self._H_prev = gray, H_k, np.eye(3)
-        self._kf_px = np.vstack([self._kf_px, ideal])
-        self._xyz = np.vstack([self._xyz, np.column_stack([xy, np.zeros(len(xy))])])
+        self._key_features = None
+        self._add_tracks(new_raw)
+
+    def _add_tracks(self, raw: np.ndarray) -> None:
+        """Keyframe features (raw px) become tracks; their plane points come through H_k."""
+        if len(raw):
+            ideal = self.camera.undistort(raw)
+            xy = _apply(np.linalg.inv(self._H_k), ideal)
+            self._kf_px = np.vstack([self._kf_px, ideal])
+            self._xyz = np.vstack([self._xyz, np.column_stack([xy, np.zeros(len(xy))])])
 
     def _check(self, gray: np.ndarray) -> np.ndarray:
         img = np.asarray(gray)
@@ -280,13 +369,16 @@ class PlanePoseEstimator:
     def _lost(self, reason: str, stats: dict) -> PlanePose:
         self.lost_frames += 1
         self._motion = np.eye(3)
-        stats.update(reanchors=self.reanchors, lost_frames=self.lost_frames)
+        stats.update(reanchors=self.reanchors, relocalisations=self.relocalisations,
+                     lost_frames=self.lost_frames)
         return PlanePose(False, reason=reason, stats=stats)
 
     def _result(self, R: np.ndarray, t: np.ndarray, stats: dict) -> PlanePose:
         R_wc, c = body_pose(R, t, None)
         R_w, pos = body_pose(R, t, self.camera_to_body)
-        stats.update(reanchors=self.reanchors, lost_frames=self.lost_frames)
+        self._centre = c
+        stats.update(reanchors=self.reanchors, relocalisations=self.relocalisations,
+                     lost_frames=self.lost_frames)
         return PlanePose(True, pos, Rotation.from_matrix(R_w).as_quat(), R_w, c, R_wc,
                          plane_homography(self.camera.K, R, t), '', stats)
 
