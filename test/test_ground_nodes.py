@@ -7,6 +7,7 @@ import math
 import subprocess
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -104,6 +105,45 @@ def test_bad_landmark_colour_stops_camshift_node(tmp_path):
                           '-p', 'camera:=cam1'], capture_output=True, text=True, timeout=60)
     assert run.returncode == 2
     assert 'landmarks.blue.hue' in run.stderr + run.stdout
+
+
+def test_camshift_node_takes_a_landmark_colour_from_a_sample_image(tmp_path, ros_node,
+                                                                  processes):
+    """landmarks.red.sample, a PNG cut from one frame, replaces red's hue and saturation:
+    on another frame the node finds red at its true centroid."""
+    from uav_vs.sim.ground_scene import GroundScene, figure_eight
+    scene = GroundScene(load_ground_config(read_params_file(CONFIG)), seed=1)
+    images, info = scene.render(figure_eight(0.0))
+    u, v = np.round(info.full_centroid[0, 0]).astype(int)
+    cv2.imwrite(str(tmp_path / 'red.png'), images[0][v - 6:v + 7, u - 6:u + 7])
+    cfg = _broken_config(tmp_path, ['landmarks', 'red', 'hue'], None)
+    processes('camshift_node', ['--params-file', str(cfg), '-r', '__ns:=/cam1',
+                                '-p', 'camera:=cam1', '-p', 'camshift.image_qos:=reliable',
+                                '-p', f"landmarks.red.sample:={tmp_path / 'red.png'}"],
+              label='cam1')
+    out: list[PolygonStamped] = []
+    ros_node.create_subscription(PolygonStamped, '/cam1/landmarks', out.append, 10)
+    pub = ros_node.create_publisher(Image, '/cam1/image_raw', 10)
+    assert wait_for(lambda: pub.get_subscription_count() > 0, 30)
+    images, info = scene.render(figure_eight(3.0))
+    assert info.visible[0, 0] > 0.98
+    pub.publish(bgr_to_image(images[0], Header(stamp=ns_to_stamp(1), frame_id='cam1_optical')))
+    assert wait_for(lambda: len(out) == 1, 10)
+    assert np.linalg.norm(polygon_to_array(out[0])[0, :2] - info.centroid[0, 0]) < 1.5
+    assert f"landmark red: colour model from {tmp_path / 'red.png'}" in processes.log('cam1')
+
+
+@pytest.mark.parametrize('sample, expected', [
+    ('no/such/red.png', "landmarks.red.sample: cannot read an image from 'no/such/red.png'"),
+    (str(CONFIG), 'landmarks.red.sample: cannot read an image from'),
+])
+def test_unusable_sample_stops_camshift_node_with_one_line(tmp_path, sample, expected):
+    run = subprocess.run([executable('camshift_node'), '--ros-args', '--params-file',
+                          str(CONFIG), '-p', 'camera:=cam1', '-p', f'landmarks.red.sample:={sample}'],
+                         capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert run.returncode == 2
+    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
+    assert len(fatal) == 1 and expected in fatal[0], run.stdout + run.stderr
 
 
 def _last_diagnostics(store: dict, name: str) -> dict:

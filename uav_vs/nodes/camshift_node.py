@@ -10,6 +10,7 @@ publishing time of the last frame `process_ms`).
 """
 import time
 
+import cv2
 import numpy as np
 from geometry_msgs.msg import PolygonStamped
 from sensor_msgs.msg import Image
@@ -17,6 +18,7 @@ from std_msgs.msg import Header
 
 from uav_vs.ros.convert import bgr_to_image, points_to_polygon
 from uav_vs.ros.ground_params import declare_cameras, declare_landmarks
+from uav_vs.ros.image_files import read_image
 from uav_vs.ros.image_input import QOS_CHOICES, ImageInput
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, QuietPublisherNode, run
 from uav_vs.ros.params import Param, T, declare
@@ -70,8 +72,14 @@ class CamshiftNode(QuietPublisherNode):
                                     'expected landmark area in the image, px', 1.0, 1e7)
                               for n in landmarks['landmarks.names']])
         params = DetectorParams.from_params(declare(self, DETECTOR_PARAMS))
-        self.detector = LandmarkDetector(models_from_params({**landmarks, **area}, params.bins),
-                                         params)
+        samples = {}
+        for name in landmarks['landmarks.names']:
+            if path := landmarks[f'landmarks.{name}.sample']:
+                samples[name], found = read_image(f'landmarks.{name}.sample', path,
+                                                  cv2.IMREAD_UNCHANGED)
+                self.get_logger().info(f'landmark {name}: colour model from {found}')
+        self.detector = LandmarkDetector(
+            models_from_params({**landmarks, **area}, params.bins, samples), params)
         self.pub = self.create_publisher(PolygonStamped, 'landmarks', 10)
         self.debug_pub = (self.create_publisher(Image, 'debug_image', 1)
                           if p['camshift.debug_image'] else None)

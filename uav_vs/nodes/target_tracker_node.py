@@ -1,12 +1,10 @@
 """target_tracker_node: a planar target found in every onboard frame (chapter Fig. 2).
 
 The target (a helipad, a car seen from above) is given by a template image file
-(`target.template`); a relative path is looked for in the working directory, then in
-the installed share/uav_vs/config, then beside the uav_vs package (so the YAML's
-`uav_vs/sim/assets/box.png` works wherever `ros2 run` starts the node) and in its
-sim/assets. Its features are matched in each frame (SIFT, or the free ORB,
-section 2.2) and a robust homography (section 2.3, Algorithm 1) maps the
-template onto the frame. `target.method` defaults to 'ransac', the most accurate
+(`target.template`; a relative path is found as uav_vs.ros.image_files says, so the
+YAML's `uav_vs/sim/assets/box.png` works wherever `ros2 run` starts the node). Its
+features are matched in each frame (SIFT, or the free ORB, section 2.2) and a robust
+homography (section 2.3, Algorithm 1) maps the template onto the frame. `target.method` defaults to 'ransac', the most accurate
 estimator on wide-baseline SIFT matches (uav_vs.vision.target_tracking).
 
 Subscribes `onboard/image_raw` (sensor_msgs/Image: bgr8, rgb8, bgra8, rgba8, mono8) and
@@ -21,10 +19,7 @@ bottom-left) mapped into the image, then the target's centre (the template centr
 `onboard/target_found` (std_msgs/Bool) for every frame processed, true or false; and
 /diagnostics (frames, found, not found, malformed, inliers, reason).
 """
-import os
-import sys
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -32,8 +27,8 @@ from geometry_msgs.msg import PolygonStamped
 from rclpy.node import Node
 from std_msgs.msg import Bool, Header
 
-import uav_vs
 from uav_vs.ros.convert import points_to_polygon
+from uav_vs.ros.image_files import read_image
 from uav_vs.ros.image_input import QOS_CHOICES, ImageInput
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, run
 from uav_vs.ros.params import Param, ParameterError, T, declare
@@ -60,39 +55,12 @@ PARAMS = [
 ]
 
 
-def template_candidates(path: str) -> list[Path]:
-    """Where target.template is looked for, in order: as given (relative: from the working
-    directory), then in share/uav_vs/config of the install prefixes, then in the uav_vs
-    package's parent directory and its sim/assets (found from the package's __file__)."""
-    given = Path(path)
-    if given.is_absolute():
-        return [given]
-    prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-    shares = [Path(prefix) / 'share' / 'uav_vs' / 'config' for prefix in [*prefixes, sys.prefix]]
-    package = Path(uav_vs.__file__).resolve().parent
-    bases = [Path.cwd(), *shares, package.parent, package / 'sim' / 'assets']
-    return list(dict.fromkeys(base / given for base in bases))
-
-
-def read_template(path: str) -> tuple[np.ndarray, Path]:
-    """The template as 8-bit grey and its file; ParameterError naming target.template when
-    no candidate file exists or the first one found is not an image."""
-    candidates = template_candidates(path)
-    found = next((c for c in candidates if c.is_file()), None)
-    if found is None:
-        raise ParameterError(f'target.template: cannot read an image from {path!r} (no such '
-                             f"file: {', '.join(map(str, candidates))})")
-    template = cv2.imread(str(found), cv2.IMREAD_GRAYSCALE)
-    if template is None:
-        raise ParameterError(f'target.template: cannot read an image from {str(found)!r}')
-    return template, found
-
-
 class TargetTrackerNode(Node):
     def __init__(self) -> None:
         super().__init__('target_tracker_node')
         p = declare(self, PARAMS)
-        template, path = read_template(p['target.template'])
+        template, path = read_image('target.template', p['target.template'],
+                                    cv2.IMREAD_GRAYSCALE)
         try:
             self.tracker = PlanarTargetTracker(
                 template, kind=p['target.features'], ratio=p['target.ratio'],

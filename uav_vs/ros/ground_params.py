@@ -2,11 +2,12 @@
 
 The keys are those of config/ground_trinocular.yaml: `cameras.names` and per camera
 `cameras.<name>.{width,height,frame_id,K,D,R,t}`; `landmarks.names` and per landmark
-`landmarks.<name>.{position,hue,saturation,value}`.
+`landmarks.<name>.{position,sample,hue,saturation,value}` (hue required unless there
+is a sample).
 """
 from rclpy.node import Node
 
-from uav_vs.ros.params import Param, T, declare
+from uav_vs.ros.params import REQUIRED, Param, T, declare
 
 
 def declare_landmarks(node: Node) -> dict:
@@ -16,14 +17,19 @@ def declare_landmarks(node: Node) -> dict:
     specs = []
     for name in names['landmarks.names']:
         key = f'landmarks.{name}.'
+        sample = declare(node, [Param(key + 'sample', T.STRING, '', (
+            'image file of the landmark as the cameras see it (alpha 0: not the landmark); '
+            'when set, the colour model comes from it, not from hue and saturation'))])
+        names.update(sample)
+        by_sample = bool(sample[key + 'sample'])
         specs += [
             Param(key + 'position', T.DOUBLE_ARRAY, description='position in base_link FLU, m',
                   size=3),
-            Param(key + 'hue', T.INTEGER_ARRAY, description=(
-                'OpenCV hue range [lo, hi] in 0..180; lo > hi wraps through 0'), low=0, high=180,
-                size=2),
-            Param(key + 'saturation', T.INTEGER_ARRAY, [60, 255], 'saturation range, 0..255',
-                  0, 255, size=2),
+            Param(key + 'hue', T.INTEGER_ARRAY, [0, 179] if by_sample else REQUIRED, (
+                'OpenCV hue range [lo, hi] in 0..180; lo > hi wraps through 0 (unused with a '
+                'sample)'), low=0, high=180, size=2),
+            Param(key + 'saturation', T.INTEGER_ARRAY, [0, 255] if by_sample else [60, 255],
+                  'saturation range, 0..255 (unused with a sample)', 0, 255, size=2),
             Param(key + 'value', T.INTEGER_ARRAY, [40, 255], 'value range, 0..255', 0, 255,
                   size=2),
         ]

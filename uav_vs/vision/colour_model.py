@@ -65,9 +65,18 @@ class ColourModel:
     def from_patch(cls, name: str, bgr: np.ndarray, mask: np.ndarray | None = None,
                    value: Sequence[int] = (0, 255), bins: tuple[int, int] = (30, 32)
                    ) -> 'ColourModel':
-        """Model from a sample image patch (BGR) showing the landmark at its usual size,
-        optionally masked (non-zero = landmark); counts of the gated pixels."""
+        """Model from a sample image patch showing the whole landmark at its usual size in
+        the camera's images; counts of the gated pixels. The patch is 8-bit BGR, or BGRA
+        whose alpha 0 marks pixels that are not the landmark; `mask` (non-zero =
+        landmark) narrows it further."""
         v_lo, v_hi = _range(f'landmarks.{name}.value', value, 255)
+        if bgr.dtype != np.uint8 or bgr.ndim != 3 or bgr.shape[2] not in (3, 4):
+            raise ValueError(f'landmarks.{name}.sample: expected an 8-bit colour image, got '
+                             f'{bgr.dtype} {bgr.shape}')
+        if bgr.shape[2] == 4:
+            alpha = bgr[..., 3]
+            mask = alpha if mask is None else np.where(mask > 0, alpha, 0)
+            bgr = np.ascontiguousarray(bgr[..., :3])
         hsv = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV)
         gate = cv2.inRange(hsv, (0, 0, v_lo), (180, 255, v_hi))
         if mask is not None:
@@ -76,10 +85,12 @@ class ColourModel:
         return cls(name, _checked(hist, name), (v_lo, v_hi))
 
 
-def models_from_params(params: Mapping[str, object], bins: tuple[int, int] = (30, 32)
-                       ) -> list[ColourModel]:
+def models_from_params(params: Mapping[str, object], bins: tuple[int, int] = (30, 32),
+                       samples: Mapping[str, np.ndarray] | None = None) -> list[ColourModel]:
     """Models from flat ROS-style params: `landmarks.names` and `landmarks.<name>.hue`,
     `.saturation`, optional `.value` (default [0, 255]) and `.area_px` (default 400).
+    A landmark in `samples` (name -> its sample patch, see `ColourModel.from_patch`) is
+    modelled from the patch and its `.value` range instead of hue and saturation.
     The order of `landmarks.names` is the landmark index everywhere."""
     names = params.get('landmarks.names')
     if (not isinstance(names, Sequence) or isinstance(names, str) or not names
@@ -89,6 +100,10 @@ def models_from_params(params: Mapping[str, object], bins: tuple[int, int] = (30
         raise ValueError(f'landmarks.names: duplicate names in {list(names)}')
     models = []
     for name in names:
+        if samples and name in samples:
+            value = params.get(f'landmarks.{name}.value', (0, 255))
+            models.append(ColourModel.from_patch(name, samples[name], value=value, bins=bins))
+            continue
         ranges = {}
         for key in ('hue', 'saturation', 'value'):
             full = f'landmarks.{name}.{key}'
