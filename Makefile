@@ -33,7 +33,7 @@ bench: $(STAMP)
 	$(BIN)/python -m bench
 
 demo: $(STAMP)
-	$(BIN)/python -m uav_vs.demo $(if $(BAG),--bag $(BAG))
+	$(BIN)/python -m uav_vs.demo $(if $(BAG),--bag $(BAG)) $(if $(AUTOPILOT),--autopilot $(AUTOPILOT))
 
 clean:
 	rm -rf $(VENV) build install log *.egg-info bench-results.jsonl demo-output

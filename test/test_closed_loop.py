@@ -60,3 +60,24 @@ def test_reaches_setpoint_and_lands_on_pad_on_vision_alone(tmp_path):
         assert score.samples >= 0.95 * counts[f'{name}/pose'], (name, score)
         assert score.position_rmse_m <= 0.05, (name, score)
     assert replay.commands.from_images > 0      # the controller ran on the replayed poses
+
+
+def test_the_same_mission_flies_a_px4_vehicle(tmp_path):
+    """The simulated vehicle behaves as PX4 (OFFBOARD only once setpoints stream, AMSL
+    takeoff altitude, AUTO.LOITER after the takeoff): the unchanged relay and mission
+    hold, approach the pad on the onboard pose and land on it."""
+    scenario = Scenario('px4', 1.3, Setpoint((0.0, 0.0, 1.3), hold=1.0),
+                        landing=Landing((0.5, -0.4), approach=1.1, final=0.8, hold=1.0))
+    log = fly(scenario, tmp_path, record=False, autopilot='px4')
+    report = FlightReport.from_log(log)
+    print(report.summary())
+    assert log.failure == '', log.failure
+    assert [e.source for e in log.setpoints] == ['ground', 'onboard', 'onboard']
+    assert all(s.reached for s in report.setpoints)
+    assert report.landing is not None and report.landing.touchdown[2] < 0.01
+    assert report.landing.error_m <= 0.3
+    assert not any(log.exit_codes.values()), log.exit_codes
+    # OFFBOARD before arming, and again after the takeoff ended in AUTO.LOITER.
+    relay = (tmp_path / 'logs' / 'mavlink_relay_node.log').read_text()
+    assert 'set_guided: done (OFFBOARD, disarmed)' in relay
+    assert 'set_guided: done (OFFBOARD, armed)' in relay

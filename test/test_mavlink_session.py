@@ -504,6 +504,30 @@ def test_px4_offboard_takeoff_body_frame_and_land():
     px4.conn.close()
 
 
+def test_the_same_calls_fly_the_simulated_px4():
+    """Against the simulator's PX4: set_guided streams setpoints before it asks for
+    OFFBOARD, arming happens in OFFBOARD, the takeoff ends in AUTO.LOITER (velocity is
+    not flown there) and set_guided re-enters OFFBOARD; a FLU body command then moves the
+    vehicle v * T along its heading, and land() lands and disarms."""
+    with pair('udp', {'autopilot': 'px4'}, allow_arming=True) as (vehicle, session):
+        assert session.wait_connected(5.0).autopilot == 'px4'
+        take_off(session, vehicle, 1.0)
+        assert vehicle.truth().mode == 'LOITER'
+        wait_for(lambda: session.status().mode == 'LOITER', 2.0, 'HEARTBEAT to say LOITER')
+        assert 0.95 < -vehicle.truth().position[2] < 1.05
+        session.set_guided()
+        assert vehicle.truth().mode == 'OFFBOARD'
+        settle(vehicle)
+        p0, yaw = vehicle.truth().position, vehicle.truth().yaw
+        fly(session, [0.5, 0.0, 0.0], body=True, duration=1.2)
+        settle(vehicle)
+        moved = vehicle.truth().position - p0
+        assert np.allclose(moved, [0.6 * math.cos(yaw), 0.6 * math.sin(yaw), 0.0], atol=0.05)
+        assert vehicle.truth().mode == 'OFFBOARD'           # the hover stream keeps it
+        session.land()
+        wait_for(lambda: not vehicle.truth().armed, 8.0, 'landing and disarming')
+
+
 def test_fence_limits_only_outward_components_by_the_distance_to_the_face():
     from uav_vs.autopilot.session import fence_velocity
     lo, hi = (-5.0, -5.0, 0.5), (5.0, 5.0, 3.0)

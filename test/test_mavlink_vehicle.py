@@ -4,7 +4,9 @@ Checks the Copter behaviour the relay has to cope with: no streams until asked,
 readiness (pre-arm bit, EKF flags, GPS fix), ACK codes and reasons, velocity targets
 ignored on the ground, aborting a takeoff, GUID_TIMEOUT coasting, silent stop-and-hold
 on bad targets, nose-into-travel when yaw is ignored, SETUP_SIGNING ignored while armed,
-and the console script as a process.
+and the console script as a process; then what its PX4 personality does differently
+(unasked streams, main/sub modes, OFFBOARD only with a setpoint stream and the hold when
+it stops, AMSL takeoff ending in AUTO.LOITER).
 """
 import math
 import subprocess
@@ -222,3 +224,73 @@ def test_link_cut_and_console_script():
     finally:
         proc.terminate()
         proc.wait(timeout=5)
+
+
+# ------------------------------------------------------------------ PX4 personality
+
+def px4_mode(main, sub=0):
+    """DO_SET_MODE params of a PX4 mode: custom-mode flag, main mode, sub mode."""
+    return 1, main, sub
+
+
+def stream(gcs, seconds, v=(0.0, 0.0, 0.0), rate=10.0):
+    """Velocity setpoints at `rate` for `seconds` (the offboard signal)."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        gcs.target(v, mask=VEL_ONLY)
+        gcs.collect(1.0 / rate)
+
+
+def test_px4_streams_unasked_and_encodes_its_modes_as_main_and_sub():
+    with vehicle(autopilot='px4', ready_delay=0.3) as sim:
+        gcs = Gcs(sim.address[1])
+        seen = gcs.collect(1.5)
+        kinds = {m.get_type() for m in seen}
+        assert {'HEARTBEAT', 'SYS_STATUS', 'ATTITUDE', 'GLOBAL_POSITION_INT'} <= kinds
+        assert 'EKF_STATUS_REPORT' not in kinds
+        beat = [m for m in seen if m.get_type() == 'HEARTBEAT'][-1]
+        assert beat.autopilot == mavlink.MAV_AUTOPILOT_PX4 and beat.custom_mode == 3 << 16  # POSCTL
+        assert gcs.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                           mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT, 100000) == mavlink.MAV_RESULT_FAILED
+        assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, *px4_mode(4, 3)) == mavlink.MAV_RESULT_ACCEPTED
+        assert sim.truth().mode == 'LOITER'
+        beat = gcs.conn.recv_match(type='HEARTBEAT', blocking=True, timeout=2.0)
+        assert beat.custom_mode == 4 << 16 | 3 << 24            # AUTO.LOITER
+        gcs.close()
+
+
+def test_px4_offboard_needs_a_second_of_setpoints_and_falls_back_to_hold_without_them():
+    with vehicle(autopilot='px4', disarm_delay=30.0) as sim:
+        gcs = Gcs(sim.address[1])
+        offboard, rejected = px4_mode(6), mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == rejected
+        assert gcs.texts == ['Switching to Offboard is currently not possible']
+        arm = mavlink.MAV_CMD_COMPONENT_ARM_DISARM
+        assert gcs.command(arm, 1) == rejected                   # POSCTL needs RC
+        stream(gcs, 0.5)
+        assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == rejected   # too short
+        stream(gcs, 0.8)
+        assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.command(arm, 1) == mavlink.MAV_RESULT_ACCEPTED
+        # AMSL takeoff altitude: home 584 m + 1.5 m; climbs in AUTO.TAKEOFF, then holds.
+        assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan,
+                           585.5) == mavlink.MAV_RESULT_ACCEPTED
+        assert sim.truth().mode == 'TAKEOFF'
+        wait_for(lambda: sim.truth().mode == 'LOITER', 6.0, 'AUTO.LOITER after the climb')
+        assert abs(-sim.truth().position[2] - 1.5) < 0.03
+        stream(gcs, 1.0, (0.5, 0.0, 0.0))                        # not flown in LOITER
+        assert np.linalg.norm(sim.truth().velocity) < 0.01
+        assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, *offboard) == mavlink.MAV_RESULT_ACCEPTED
+        n0 = sim.truth().position[0]
+        stream(gcs, 1.0, (0.5, 0.0, 0.0))
+        assert sim.truth().position[0] - n0 > 0.2                # north, in OFFBOARD
+        # The stream stops (companion computer gone): after COM_OF_LOSS_T, hold.
+        t_stop = time.monotonic()
+        wait_for(lambda: sim.truth().mode == 'LOITER', 2.0, 'offboard loss failsafe')
+        assert 0.9 < time.monotonic() - t_stop < 1.3
+        wait_for(lambda: np.linalg.norm(sim.truth().velocity) < 0.02, 3.0, 'the hold')
+        assert gcs.command(mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, math.nan) == mavlink.MAV_RESULT_ACCEPTED
+        assert sim.truth().mode == 'LAND'
+        wait_for(lambda: not sim.truth().armed, 6.0, 'landing and disarming')
+        assert sim.truth().position[2] == 0.0
+        gcs.close()

@@ -55,6 +55,7 @@ def test_publishes_ground_images_and_truth_of_the_vehicle_at_home(ros_node, proc
     ('ground.background:=nope.jpg', 'ground.background: cannot read'),
     ('onboard.rate:=-1.0', 'onboard.rate: expected a number in [0, 60]'),
     ('vehicle.connection:=tcpin:10.255.255.1:5760', 'vehicle.connection: cannot serve'),
+    ('vehicle.autopilot:=betaflight', 'vehicle.autopilot: expected a string (one of ardupilot, px4)'),
 ])
 def test_bad_parameter_stops_it_with_one_line(override, expected):
     run = subprocess.run([executable('sim_world'), '--ros-args', *FILES, '-p', override],

@@ -37,13 +37,13 @@ def replay(bag: Path, out: Path, rate: float) -> int:
     return report(log, out)
 
 
-def closed_loop(scenario_name: str, out: Path) -> int:
+def closed_loop(scenario_name: str, out: Path, autopilot: str) -> int:
     """Fly a scenario (recording its bag into out/bag); print and save the summary and plots."""
     scenario = SCENARIOS[scenario_name]
-    print(f'closed loop: scenario {scenario.name}, sim_world + 3 camshift_node + '
+    print(f'closed loop: scenario {scenario.name}, sim_world ({autopilot}) + 3 camshift_node + '
           'trinocular_pose_node + homography_pose_node + fuzzy_controller_node + '
           f'mavlink_relay_node, recorded to {out}/bag (logs in {out}/logs/)', flush=True)
-    return report(fly(scenario, out), out)
+    return report(fly(scenario, out, autopilot=autopilot), out)
 
 
 def report(log: FlightLog, out: Path) -> int:
@@ -66,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
                         help='bag replay speed (1 = recorded)')
     parser.add_argument('--scenario', default='demo', choices=sorted(SCENARIOS),
                         help='closed-loop scenario (default %(default)s)')
+    parser.add_argument('--autopilot', default='ardupilot', choices=('ardupilot', 'px4'),
+                        help="whose MAVLink behaviour the simulated vehicle follows "
+                             "(default %(default)s)")
     parser.add_argument('--out', type=Path, help='output folder (default demo-output, '
                         'demo-output/replay with --bag)')
     args = parser.parse_args(argv)
@@ -77,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if args.bag is not None:
         return replay(args.bag, out, args.rate)
-    return closed_loop(args.scenario, out)
+    return closed_loop(args.scenario, out, args.autopilot)
 
 
 if __name__ == '__main__':

@@ -12,7 +12,8 @@
                                at the hold setpoint, initialised at the ground station's
                                pose of it (so both vision poses share `world`)
 
-and flies the mission: the relay's `set_guided`, `arm`, `takeoff`; the controller's
+and flies the mission: the relay's `set_guided`, `arm`, `takeoff`, `set_guided` again
+(PX4 holds in AUTO.LOITER after its takeoff); the controller's
 `/fuzzy_controller_node/enable`; one `setpoint` after another, each accepted once the
 vision pose the controller flies on has stayed within the tolerance for the hold; over
 the pad, the relay's `land`. The mission never looks at the truth or at the autopilot's
@@ -100,9 +101,11 @@ class Configs:
 
 
 def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
-        startup_timeout: float = 90.0, record: bool = True) -> FlightLog:
+        startup_timeout: float = 90.0, record: bool = True,
+        autopilot: str = 'ardupilot') -> FlightLog:
     """Start the graph, fly `scenario`, stop the graph; node logs go to out_dir/logs and,
-    with `record`, the flight's topics (recorded_topics) to the bag out_dir/bag.
+    with `record`, the flight's topics (recorded_topics) to the bag out_dir/bag. The
+    simulated vehicle behaves as `autopilot` ('ardupilot' or 'px4') does.
 
     A step that fails ends the mission (the vehicle is told to land where it is) and
     is named in the log's `failure`.
@@ -110,7 +113,7 @@ def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
     bag = out_dir / 'bag' if record else None
     if bag is not None and bag.exists():
         shutil.rmtree(bag)
-    return _Mission(scenario, out_dir / 'logs', configs, bag).run(startup_timeout)
+    return _Mission(scenario, out_dir / 'logs', configs, bag, autopilot).run(startup_timeout)
 
 
 def recorded_topics(cameras: list[str]) -> list[str]:
@@ -135,8 +138,9 @@ class _Mission:
     """One flight of a scenario: processes, mission steps, events."""
 
     def __init__(self, scenario: Scenario, log_dir: Path, configs: Configs,
-                 bag: Path | None) -> None:
+                 bag: Path | None, autopilot: str) -> None:
         self.scenario, self.log_dir, self.configs, self.bag = scenario, log_dir, configs, bag
+        self.autopilot = autopilot
         self.procs: dict[str, subprocess.Popen] = {}      # running
         self.retired: list[tuple[str, subprocess.Popen]] = []   # stopped on purpose
         self.controller_source = ''
@@ -174,7 +178,8 @@ class _Mission:
                                                                *recorded_topics(cameras)])
         self._start('sim_world', 'sim_world', [
             '--params-file', str(c.ground), '--params-file', str(c.onboard),
-            '--params-file', str(c.world), '-p', f'vehicle.connection:=tcpin:127.0.0.1:{port}'])
+            '--params-file', str(c.world), '-p', f'vehicle.connection:=tcpin:127.0.0.1:{port}',
+            '-p', f'vehicle.autopilot:={self.autopilot}'])
         for label, proc in zip([*cameras, 'trinocular_pose_node'],
                                ground_graph(c.ground, cameras, self.log_dir)):
             self.procs[label] = proc
@@ -221,6 +226,8 @@ class _Mission:
         rec.call(SetBool, 'arm', SetBool.Request(data=True), 15.0)
         self.events['takeoff_ns'] = time.time_ns()
         rec.call(Trigger, 'takeoff', Trigger.Request(), 30.0)
+        # PX4 holds in AUTO.LOITER after a takeoff: back to OFFBOARD (ArduPilot stays GUIDED).
+        rec.call(Trigger, 'set_guided', Trigger.Request(), 15.0)
         self._enable_controller()
         self._fly_to('hold', s.hold, 'ground')
         if s.setpoints or s.landing is not None:

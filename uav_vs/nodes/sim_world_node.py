@@ -32,7 +32,7 @@ from uav_vs.ros.ground_params import declare_cameras, declare_landmarks
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, run
 from uav_vs.ros.params import Param, T, declare
 from uav_vs.sim.ground_scene import GroundScene
-from uav_vs.sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
+from uav_vs.sim.mavlink_vehicle import CUSTOM_MODES, MavlinkVehicle, VehicleConfig
 from uav_vs.sim.onboard_scene import OnboardScene
 from uav_vs.sim.world import SimWorld, VehicleState
 from uav_vs.vision.camera import Camera
@@ -45,6 +45,9 @@ PARAMS = [
           'MAVLink endpoint the vehicle serves: tcpin:HOST:PORT, udpin:HOST:PORT or '
           'udpout:HOST:PORT'),
     Param('vehicle.system_id', T.INTEGER, _V.system_id, 'MAVLink system id of the vehicle', 1, 255),
+    Param('vehicle.autopilot', T.STRING, _V.autopilot,
+          "whose MAVLink behaviour the vehicle follows: ArduPilot Copter's or PX4's",
+          choices=tuple(CUSTOM_MODES)),
     Param('vehicle.rate', T.DOUBLE, _V.rate, 'simulation and telemetry loop rate, Hz',
           10.0, 1000.0),
     Param('vehicle.ready_delay', T.DOUBLE, _V.ready_delay,
@@ -106,7 +109,8 @@ class SimWorldNode(Node):
         try:
             vehicle = MavlinkVehicle(VehicleConfig(
                 connection=p['vehicle.connection'], system_id=p['vehicle.system_id'],
-                rate=p['vehicle.rate'], ready_delay=p['vehicle.ready_delay']))
+                rate=p['vehicle.rate'], ready_delay=p['vehicle.ready_delay'],
+                autopilot=p['vehicle.autopilot']))
         except OSError as err:
             raise ValueError(f"vehicle.connection: cannot serve {p['vehicle.connection']}: "
                              f'{err.strerror or err}') from None

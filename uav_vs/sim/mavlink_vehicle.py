@@ -1,4 +1,4 @@
-"""A simulated multirotor that speaks MAVLink the way ArduPilot Copter does.
+"""A simulated multirotor that speaks MAVLink the way ArduPilot Copter or PX4 does.
 
 It is the test peer of the relay (uav_vs.autopilot.session) and the embedded default
 vehicle; the real targets are ArduPilot/PX4 SITL and real autopilots.
@@ -36,6 +36,22 @@ What it does like ArduPilot Copter 4.x (what the relay relies on):
   sticks: the vehicle holds still.
 - MAVLink 2 signing when a key is configured or installed by SETUP_SIGNING (no ACK,
   ignored while armed): outgoing signed, unsigned incoming dropped.
+
+With `autopilot='px4'` it behaves like PX4 multicopter instead, where PX4 differs:
+- HEARTBEAT of MAV_AUTOPILOT_PX4, custom_mode = main << 16 | sub << 24: POSCTL (at
+  boot), AUTO.LOITER, AUTO.TAKEOFF, AUTO.LAND, OFFBOARD. Telemetry streams without being
+  asked (SET_MESSAGE_INTERVAL still changes the rates); no EKF_STATUS_REPORT.
+- Refusals are MAV_RESULT_TEMPORARILY_REJECTED, as PX4's commander answers a denied
+  mode change. OFFBOARD is refused unless setpoints have streamed at > 2 Hz for more
+  than a second; it is left for AUTO.LOITER (hold, what the default offboard-loss action
+  comes to without RC) when none arrives for `offboard_loss_timeout` (COM_OF_LOSS_T).
+- Arming only in LOITER or OFFBOARD (POSCTL needs the RC this simulator has not).
+- NAV_TAKEOFF (armed, landed) takes param7 as the AMSL altitude (NaN: 2.5 m above home,
+  MIS_TAKEOFF_ALT), climbs in AUTO.TAKEOFF and then holds in AUTO.LOITER; NAV_LAND is
+  AUTO.LAND.
+- Setpoints in MAV_FRAME_LOCAL_NED (1) and MAV_FRAME_BODY_NED (8) only, obeyed in
+  OFFBOARD: the last one is flown until the offboard-loss failsafe, with no
+  GUID_TIMEOUT.
 """
 import argparse
 import collections
@@ -50,8 +66,23 @@ import numpy as np
 from uav_vs.autopilot.link import (FORCE_DISARM, POSITION_IGNORE, VELOCITY_IGNORE,
                                    load_signing_key, mavlink, mavutil)
 
-STABILIZE, GUIDED, LAND = 0, 4, 9
-MODE_NAMES = {STABILIZE: 'STABILIZE', GUIDED: 'GUIDED', LAND: 'LAND'}
+ARDUPILOT, PX4 = 'ardupilot', 'px4'
+# The modes simulated and their HEARTBEAT custom_mode: ArduCopter's mode numbers, and
+# PX4's main << 16 | sub << 24 (pymavlink's px4_map holds main and sub).
+CUSTOM_MODES = {
+    ARDUPILOT: {'STABILIZE': 0, 'GUIDED': 4, 'LAND': 9},
+    PX4: {name: main << 16 | sub << 24 for name, (_, main, sub) in mavutil.px4_map.items()
+          if name in ('POSCTL', 'LOITER', 'TAKEOFF', 'LAND', 'OFFBOARD')}}
+BOOT_MODE = {ARDUPILOT: 'STABILIZE', PX4: 'POSCTL'}
+VELOCITY_MODE = {ARDUPILOT: 'GUIDED', PX4: 'OFFBOARD'}
+ARMABLE = {ARDUPILOT: ('GUIDED', 'STABILIZE'), PX4: ('LOITER', 'OFFBOARD')}
+SETPOINT_FRAMES = {ARDUPILOT: (1, 7, 8, 9), PX4: (1, 8)}
+# PX4 streams these without being asked (interval, s).
+PX4_STREAMS = {mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0, mavlink.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
+               mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: 1.0, mavlink.MAVLINK_MSG_ID_ATTITUDE: 0.05,
+               mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 0.05,
+               mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 0.2}
+PX4_TAKEOFF_HEIGHT = 2.5            # MIS_TAKEOFF_ALT [m]
 STREAMABLE = {mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_SYS_STATUS,
               mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT, mavlink.MAVLINK_MSG_ID_GPS_RAW_INT,
               mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
@@ -78,6 +109,8 @@ class VehicleConfig:
     guid_timeout: float = 3.0           # [s] (GUID_TIMEOUT)
     disarm_delay: float = 10.0          # [s] armed on the ground without takeoff
     system_id: int = 1
+    autopilot: str = ARDUPILOT          # whose behaviour: 'ardupilot' (Copter) or 'px4'
+    offboard_loss_timeout: float = 1.0  # PX4: OFFBOARD left this long without a setpoint [s]
     home: tuple[float, float, float] = (-35.363261, 149.165230, 584.0)  # lat, lon [deg], AMSL [m]
     signing_key: bytes | None = None
 
@@ -144,7 +177,11 @@ class MavlinkVehicle:
     """The simulated vehicle, run by a thread: start(), then truth(); stop() when done."""
 
     def __init__(self, config: VehicleConfig = VehicleConfig()):
+        if config.autopilot not in CUSTOM_MODES:
+            raise ValueError(f'autopilot: expected one of {", ".join(CUSTOM_MODES)}, '
+                             f'got {config.autopilot!r}')
         self.config = config
+        self._px4 = config.autopilot == PX4
         self._conn = _server(config.connection, config.system_id)
         if config.signing_key is not None:
             self._conn.setup_signing(config.signing_key, sign_outgoing=True)
@@ -160,11 +197,13 @@ class MavlinkVehicle:
         self._yaw_rate_target = 0.0
         self._face_travel = False
         self._target_time = -math.inf
-        self._mode = STABILIZE
+        self._mode = BOOT_MODE[config.autopilot]
+        self._stream_start = self._last_setpoint = -math.inf   # PX4's offboard signal
         self._armed = self._flying = self._ready = False
         self._armed_at = 0.0
         self._takeoff_alt: float | None = None
-        self._intervals = {mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0}
+        self._intervals = (dict(PX4_STREAMS) if self._px4
+                           else {mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0})
         self._next_send: dict[int, float] = {}
         self._targets = collections.deque(maxlen=2000)
         self._senders = {
@@ -201,7 +240,7 @@ class MavlinkVehicle:
     def truth(self) -> Truth:
         with self._lock:
             return Truth(time.monotonic(), self._p.copy(), self._v.copy(), self._yaw, self._yaw_rate,
-                         self._armed, MODE_NAMES[self._mode], self._flying,
+                         self._armed, self._mode, self._flying,
                          self._conn.mav.signing.secret_key is not None)
 
     def targets(self, since: float = -math.inf) -> list[Target]:
@@ -238,7 +277,11 @@ class MavlinkVehicle:
         cfg = self.config
         if not self._ready and now - self._t0 >= cfg.ready_delay:
             self._ready = True
-            self._text(mavlink.MAV_SEVERITY_INFO, 'EKF3 IMU0 is using GPS')
+            if not self._px4:
+                self._text(mavlink.MAV_SEVERITY_INFO, 'EKF3 IMU0 is using GPS')
+        if self._mode == 'OFFBOARD' and now - self._last_setpoint > cfg.offboard_loss_timeout:
+            self._set_mode('LOITER')
+            self._text(mavlink.MAV_SEVERITY_CRITICAL, 'Failsafe: no offboard signal, holding')
         if self._armed and not self._flying and now - self._armed_at > cfg.disarm_delay:
             self._disarm('Disarming: takeoff not started')
         if not self._flying:
@@ -255,27 +298,29 @@ class MavlinkVehicle:
             self._p[2] = 0.0
             self._v[:] = 0.0
             self._flying = False
-            if self._mode == LAND:
-                self._disarm('Land complete: disarming')
+            if self._mode == 'LAND':
+                self._disarm('Landing detected' if self._px4 else 'Land complete: disarming')
         elif self._p[2] > 0.0:
             self._p[2], self._v[2] = 0.0, min(self._v[2], 0.0)
 
     def _targets_now(self, now: float) -> tuple[np.ndarray, float]:
         """Velocity (NED) and yaw-rate targets of the current mode."""
         cfg = self.config
-        if self._mode == LAND:
+        if self._mode == 'LAND':
             return np.array([0.0, 0.0, cfg.land_speed]), 0.0
-        if self._mode != GUIDED:
-            return np.zeros(3), 0.0
-        if self._takeoff_alt is not None:
+        if self._takeoff_alt is not None:   # ArduPilot GUIDED or PX4 AUTO.TAKEOFF climb
             remaining = self._takeoff_alt + self._p[2]
-            if remaining <= 0.02:
-                self._takeoff_alt = None
-                self._text(mavlink.MAV_SEVERITY_INFO, 'Takeoff complete')
-            else:  # climb rate led by the lag: critically damped, no overshoot
+            if remaining > 0.02:  # climb rate led by the lag: critically damped, no overshoot
                 climb = min(cfg.takeoff_speed, (remaining + cfg.tau * self._v[2]) / cfg.tau)
                 return np.array([0.0, 0.0, -climb]), 0.0
-        if now - self._target_time > cfg.guid_timeout:
+            self._takeoff_alt = None
+            if self._px4:
+                self._set_mode('LOITER')
+            else:
+                self._text(mavlink.MAV_SEVERITY_INFO, 'Takeoff complete')
+        if self._mode != VELOCITY_MODE[cfg.autopilot]:
+            return np.zeros(3), 0.0
+        if not self._px4 and now - self._target_time > cfg.guid_timeout:
             return np.zeros(3), 0.0
         if self._face_travel and math.hypot(*self._v_target[:2]) > 0.1:
             error = math.atan2(self._v_target[1], self._v_target[0]) - self._yaw
@@ -305,9 +350,10 @@ class MavlinkVehicle:
     def _command(self, msg, now: float) -> tuple[int, str | None]:
         """Execute a COMMAND_LONG: (MAV_RESULT, STATUSTEXT reason or None)."""
         c, ok, failed = msg.command, mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_FAILED
+        refused = mavlink.MAV_RESULT_TEMPORARILY_REJECTED if self._px4 else failed
         if c == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval = int(msg.param1), msg.param2
-            if msg_id not in STREAMABLE:
+            if msg_id not in STREAMABLE or (self._px4 and msg_id == mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT):
                 return failed, None
             if interval < 0 or (interval == 0 and msg_id != mavlink.MAVLINK_MSG_ID_HEARTBEAT):
                 self._intervals.pop(msg_id, None)
@@ -316,15 +362,18 @@ class MavlinkVehicle:
                 self._next_send[msg_id] = now
             return ok, None
         if c == mavlink.MAV_CMD_DO_SET_MODE:
-            mode = int(msg.param2)
-            if not int(msg.param1) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED or mode not in MODE_NAMES:
-                return failed, f'Mode change failed: unknown mode {mode}'
-            if mode == GUIDED and not self._ready:
-                return failed, 'Mode change failed: GUIDED requires position'
+            mode = self._requested_mode(msg)
+            if mode is None:
+                return refused, f'Mode change failed: unknown mode {int(msg.param2)}'
+            if mode not in ('STABILIZE', 'LAND') and not self._ready:
+                return refused, f'Mode change failed: {mode} requires position'
+            if mode == 'OFFBOARD' and not (now - self._last_setpoint < 0.5
+                                           and now - self._stream_start > 1.0):
+                return refused, 'Switching to Offboard is currently not possible'
             self._set_mode(mode)
             return ok, None
         if c == mavlink.MAV_CMD_NAV_LAND:
-            self._set_mode(LAND)
+            self._set_mode('LAND')
             return ok, None
         if c == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
             if msg.param1 == 0:
@@ -336,15 +385,24 @@ class MavlinkVehicle:
             if self._armed:
                 return ok, None
             if not self._ready:
-                return failed, 'PreArm: Need Position Estimate'
-            if self._mode not in (GUIDED, STABILIZE):
-                return failed, 'Arm: Mode not armable'
+                return refused, ('Arming denied: no position estimate' if self._px4
+                                 else 'PreArm: Need Position Estimate')
+            if self._mode not in ARMABLE[self.config.autopilot]:
+                return refused, ('Arming denied: manual control lost' if self._px4
+                                 else 'Arm: Mode not armable')
             self._armed, self._armed_at = True, now
             return ok, None
         if c == mavlink.MAV_CMD_NAV_TAKEOFF:
-            height = msg.param7
-            if self._mode != GUIDED or not self._armed or self._flying or not height > 0:
-                return failed, None
+            if self._px4:   # param7: AMSL altitude
+                height = (PX4_TAKEOFF_HEIGHT if math.isnan(msg.param7)
+                          else msg.param7 - self.config.home[2])
+            else:
+                height = msg.param7
+            if ((not self._px4 and self._mode != 'GUIDED') or not self._armed or self._flying
+                    or not height > 0):
+                return refused, None
+            if self._px4:
+                self._set_mode('TAKEOFF')
             self._takeoff_alt, self._flying = height, True
             self._target_time = -math.inf
             return ok, None
@@ -354,15 +412,22 @@ class MavlinkVehicle:
         mask = msg.type_mask
         v = (msg.vx, msg.vy, msg.vz)
         self._targets.append(Target(now, msg.coordinate_frame, mask, v, msg.yaw_rate))
-        if self._mode != GUIDED or not self._armed or not self._flying:
-            return  # dropped silently: on the ground, or not GUIDED
+        if self._px4:
+            if msg.coordinate_frame not in SETPOINT_FRAMES[PX4]:
+                return  # PX4 ignores other frames
+            if now - self._last_setpoint > 0.5:     # below 2 Hz: the stream starts anew
+                self._stream_start = now
+            self._last_setpoint = now
+        if self._mode != VELOCITY_MODE[self.config.autopilot] or not self._armed or not self._flying:
+            return  # dropped silently: on the ground, or not GUIDED / OFFBOARD
         if mask & POSITION_IGNORE != POSITION_IGNORE or mask & VELOCITY_IGNORE:
             return  # position targets are not simulated
         yaw_rate_used = not mask & mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
         values = v + ((msg.yaw_rate,) if yaw_rate_used else ())
         self._takeoff_alt = None  # a velocity target aborts the takeoff climb
         self._target_time = now
-        if (msg.coordinate_frame not in (1, 7, 8, 9) or not all(map(math.isfinite, values))
+        if (msg.coordinate_frame not in SETPOINT_FRAMES[ARDUPILOT]
+                or not all(map(math.isfinite, values))
                 or max(map(abs, v)) > 1000.0):
             self._v_target, self._yaw_rate_target, self._face_travel = np.zeros(3), 0.0, False
             return  # stop and hold, no error
@@ -373,7 +438,16 @@ class MavlinkVehicle:
         self._yaw_rate_target = msg.yaw_rate if yaw_rate_used else 0.0
         self._face_travel = bool(mask & mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE) and not yaw_rate_used
 
-    def _set_mode(self, mode: int) -> None:
+    def _requested_mode(self, msg) -> str | None:
+        """The simulated mode a DO_SET_MODE asks for, or None."""
+        if not int(msg.param1) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            return None
+        custom = (int(msg.param2) << 16 | int(msg.param3) << 24 if self._px4
+                  else int(msg.param2))
+        return next((name for name, number in CUSTOM_MODES[self.config.autopilot].items()
+                     if number == custom), None)
+
+    def _set_mode(self, mode: str) -> None:
         self._mode = mode
         self._takeoff_alt = None
         self._target_time = -math.inf
@@ -399,14 +473,18 @@ class MavlinkVehicle:
         return int((now - self._t0) * 1e3)
 
     def _send_heartbeat(self, now: float) -> None:
-        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
-        if self._mode == GUIDED:
-            base |= mavlink.MAV_MODE_FLAG_GUIDED_ENABLED
+        if self._px4:
+            base, autopilot = mavutil.px4_map[self._mode][0], mavlink.MAV_AUTOPILOT_PX4
+        else:
+            base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
+            if self._mode == 'GUIDED':
+                base |= mavlink.MAV_MODE_FLAG_GUIDED_ENABLED
+            autopilot = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
         if self._armed:
             base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         state = mavlink.MAV_STATE_ACTIVE if self._armed else mavlink.MAV_STATE_STANDBY
-        self._conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                                      base, self._mode, state)
+        self._conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, autopilot, base,
+                                      CUSTOM_MODES[self.config.autopilot][self._mode], state)
 
     def _send_sys_status(self, now: float) -> None:
         prearm = mavlink.MAV_SYS_STATUS_PREARM_CHECK
@@ -453,7 +531,8 @@ class MavlinkVehicle:
 
 def main(argv: list[str] | None = None) -> None:
     """`sim_vehicle`: serve the simulated copter until Ctrl-C."""
-    parser = argparse.ArgumentParser(description='Simulated ArduCopter-like vehicle behind a MAVLink endpoint.')
+    parser = argparse.ArgumentParser(description='Simulated ArduCopter- or PX4-like vehicle behind a '
+                                                 'MAVLink endpoint.')
     parser.add_argument('--connection', default=VehicleConfig.connection,
                         help='server side: tcpin:HOST:PORT, udpin:HOST:PORT or udpout:HOST:PORT '
                              '(default %(default)s, like the arducopter binary)')
@@ -463,14 +542,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument('--guid-timeout', type=float, default=VehicleConfig.guid_timeout,
                         help='seconds a velocity target is flown without a new one')
     parser.add_argument('--system-id', type=int, default=VehicleConfig.system_id)
+    parser.add_argument('--autopilot', choices=sorted(CUSTOM_MODES), default=VehicleConfig.autopilot,
+                        help="whose MAVLink behaviour to follow (default %(default)s)")
     parser.add_argument('--signing-key-file', help='enforce MAVLink 2 signing with this key')
     args = parser.parse_args(argv)
     key = load_signing_key(args.signing_key_file) if args.signing_key_file else None
     config = VehicleConfig(connection=args.connection, rate=args.rate, ready_delay=args.ready_delay,
-                           guid_timeout=args.guid_timeout, system_id=args.system_id, signing_key=key)
+                           guid_timeout=args.guid_timeout, system_id=args.system_id, signing_key=key,
+                           autopilot=args.autopilot)
     with MavlinkVehicle(config) as vehicle:
         host, port = vehicle.address
-        print(f'sim_vehicle: ArduCopter-like system {args.system_id} on {args.connection} '
+        like = 'PX4' if args.autopilot == PX4 else 'ArduCopter'
+        print(f'sim_vehicle: {like}-like system {args.system_id} on {args.connection} '
               f'({host}:{port}){", signing enforced" if key else ""}', flush=True)
         try:
             while True:
