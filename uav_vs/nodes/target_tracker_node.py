@@ -4,8 +4,9 @@ The target (a helipad, a car seen from above) is given by a template image file
 (`target.template`; a relative path is found as uav_vs.ros.image_files says, so the
 YAML's `uav_vs/sim/assets/box.png` works wherever `ros2 run` starts the node). Its
 features are matched in each frame (SIFT, or the free ORB, section 2.2) and a robust
-homography (section 2.3, Algorithm 1) maps the template onto the frame. `target.method` defaults to 'ransac', the most accurate
-estimator on wide-baseline SIFT matches (uav_vs.vision.target_tracking).
+homography (section 2.3, Algorithm 1) maps the template onto the frame.
+`target.method` defaults to 'ransac', the most accurate estimator on wide-baseline SIFT
+matches (uav_vs.vision.target_tracking).
 
 Subscribes `onboard/image_raw` (sensor_msgs/Image: bgr8, rgb8, bgra8, rgba8, mono8) and
 `onboard/image_raw/compressed` (sensor_msgs/CompressedImage: jpeg, png), sensor-data

@@ -353,7 +353,8 @@ class MavlinkVehicle:
         refused = mavlink.MAV_RESULT_TEMPORARILY_REJECTED if self._px4 else failed
         if c == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval = int(msg.param1), msg.param2
-            if msg_id not in STREAMABLE or (self._px4 and msg_id == mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT):
+            ekf = msg_id == mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT
+            if msg_id not in STREAMABLE or (self._px4 and ekf):   # PX4 has no EKF_STATUS_REPORT
                 return failed, None
             if interval < 0 or (interval == 0 and msg_id != mavlink.MAVLINK_MSG_ID_HEARTBEAT):
                 self._intervals.pop(msg_id, None)
