@@ -12,15 +12,15 @@ from uav_vs.ros.params import REQUIRED, Param, T, declare
 
 def declare_landmarks(node: Node) -> dict:
     """Declare `landmarks.*`; return them as a flat dict."""
-    names = declare(node, [Param('landmarks.names', T.STRING_ARRAY, description=(
+    out = declare(node, [Param('landmarks.names', T.STRING_ARRAY, description=(
         'landmark names; their order is the point index in every landmarks message'))])
     specs = []
-    for name in names['landmarks.names']:
+    for name in out['landmarks.names']:
         key = f'landmarks.{name}.'
         sample = declare(node, [Param(key + 'sample', T.STRING, '', (
             'image file of the landmark as the cameras see it (alpha 0: not the landmark); '
             'when set, the colour model comes from it, not from hue and saturation'))])
-        names.update(sample)
+        out.update(sample)
         by_sample = bool(sample[key + 'sample'])
         specs += [
             Param(key + 'position', T.DOUBLE_ARRAY, description='position in base_link FLU, m',
@@ -34,7 +34,7 @@ def declare_landmarks(node: Node) -> dict:
                   size=2),
         ]
     specs.append(Param('landmarks.radius', T.DOUBLE, 0.1, 'landmark sphere radius, m', 0.001, 10.0))
-    return {**names, **declare(node, specs)}
+    return {**out, **declare(node, specs)}
 
 
 def declare_cameras(node: Node, only: str | None = None) -> dict:
