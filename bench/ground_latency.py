@@ -3,12 +3,14 @@
 Three camera-driver processes, one per camera, publish frames rendered by the
 simulator as raw bgr8 images (sensor-data QoS), each stamped with its publish time,
 to three camshift_node processes feeding a trinocular_pose_node process. A probe
-process takes the latency of each pose (arrival time minus its stamp) and of each
-camera's landmarks (the first hop). The reference is the same graph on Fast DDS's
-builtin transports (no shared-memory profile). Fast DDS reads its profile once per
-process, so each run's processes all start with its environment.
+process takes the latency of each pose (arrival time minus its stamp), as a controller
+would see it. The first hop (each camera's landmarks) is measured in a run of its own:
+three more subscriptions in the probe add three wake-ups per frame set on two cores,
+about 1 ms at p95, to the very latency being measured. The reference is the same graph
+on Fast DDS's builtin transports (no shared-memory profile). Fast DDS reads its profile
+once per process, so each run's processes all start with its environment.
 
-`python -m bench.ground_latency probe OUT.npy` runs one measurement;
+`python -m bench.ground_latency probe OUT.npy pose|landmarks` runs one measurement;
 `python -m bench.ground_latency driver CAMERA START` is one camera driver.
 """
 import os
@@ -71,32 +73,31 @@ def driver(camera: str, start: float) -> None:
     rclpy.shutdown()
 
 
-def measure(log_dir: Path) -> np.ndarray:
-    """Latencies (ms) of one run: row 0 the poses', row 1 the cameras' landmarks
-    (first hop), NaN-padded to equal length."""
+def measure(log_dir: Path, what: str) -> np.ndarray:
+    """Latencies (ms) of one run: of every `ground/pose` (what='pose') or of every
+    camera's `landmarks` (what='landmarks', the first hop)."""
     procs = ground_graph(default_config_path(), CAMERAS, log_dir)
     rclpy.init()
     node = rclpy.create_node('latency_probe')
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     clock = node.get_clock()
-    poses: list[float] = []
-    hops: list[float] = []
+    ages: list[float] = []
 
-    def age_ms(msg) -> float:
-        return (clock.now().nanoseconds - stamp_to_ns(msg.header.stamp)) / 1e6
+    def on_message(msg) -> None:
+        ages.append((clock.now().nanoseconds - stamp_to_ns(msg.header.stamp)) / 1e6)
 
-    node.create_subscription(PoseStamped, 'ground/pose', lambda m: poses.append(age_ms(m)), 100)
-    for c in CAMERAS:
-        node.create_subscription(PolygonStamped, f'{c}/landmarks',
-                                 lambda m: hops.append(age_ms(m)), 100)
+    if what == 'pose':
+        node.create_subscription(PoseStamped, 'ground/pose', on_message, 100)
+    else:
+        for c in CAMERAS:
+            node.create_subscription(PolygonStamped, f'{c}/landmarks', on_message, 100)
     start = time.monotonic() + 10.0
     drivers = [subprocess.Popen([sys.executable, '-m', 'bench.ground_latency', 'driver', c,
                                  repr(start)]) for c in CAMERAS]
     try:
         _spin_until(executor, lambda: time.monotonic() >= start + WARMUP_S, start + WARMUP_S + 1)
-        poses.clear()
-        hops.clear()
+        ages.clear()
         _spin_until(executor, lambda: False, start + SECONDS + 0.5)
     finally:
         for d in drivers:
@@ -105,26 +106,23 @@ def measure(log_dir: Path) -> np.ndarray:
         node.destroy_node()
         rclpy.shutdown()
         graph.stop(procs)
-    out = np.full((2, max(len(poses), len(hops), 1)), np.nan)
-    out[0, :len(poses)], out[1, :len(hops)] = poses, hops
-    return out
+    return np.array(ages)
 
 
-def _run(profile: str | None) -> tuple[np.ndarray, np.ndarray]:
+def _run(profile: str | None, what: str) -> np.ndarray:
     env = {k: v for k, v in os.environ.items() if k != 'FASTRTPS_DEFAULT_PROFILES_FILE'}
     if profile:
         env['FASTRTPS_DEFAULT_PROFILES_FILE'] = profile
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / 'latency.npy'
-        subprocess.run([sys.executable, '-m', 'bench.ground_latency', 'probe', str(out)], env=env,
-                       check=True)
-        poses, hops = np.load(out)
-    return poses[np.isfinite(poses)], hops[np.isfinite(hops)]
+        subprocess.run([sys.executable, '-m', 'bench.ground_latency', 'probe', str(out), what],
+                       env=env, check=True)
+        return np.load(out)
 
 
 def latency() -> None:
     shm = str(Path(__file__).resolve().parents[1] / 'config' / 'fastdds_shm.xml')
-    (ours, hops), (builtin, _) = _run(shm), _run(None)
+    ours, builtin, hops = _run(shm, 'pose'), _run(None, 'pose'), _run(shm, 'landmarks')
     expected = int((SECONDS - WARMUP_S) * RATE_HZ)
     report('ground', 'ground/latency', ours, reference='builtin transports', ref_ms=builtin,
            poses=len(ours), expected_poses=expected, ref_poses=len(builtin),
@@ -141,4 +139,4 @@ if __name__ == '__main__':
         driver(sys.argv[2], float(sys.argv[3]))
     else:
         with tempfile.TemporaryDirectory(prefix='uav_vs_latency_') as logs:
-            np.save(sys.argv[2], measure(Path(logs)))
+            np.save(sys.argv[2], measure(Path(logs), sys.argv[3]))
