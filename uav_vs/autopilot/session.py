@@ -359,7 +359,8 @@ class Session:
 
         Names are the autopilot's own (ArduPilot: GUIDED, LAND, LOITER, ...; PX4:
         OFFBOARD, POSCTL, LAND, ...). PX4 enters OFFBOARD only while setpoints flow, so
-        zero velocity is streamed for a second before and during the switch.
+        zero velocity is streamed for 1.5 s before (PX4 wants more than a second) and during
+        the switch.
         """
         name = name.upper()
         with self._cond:
@@ -371,7 +372,7 @@ class Session:
                 params = (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub)
                 if name == 'OFFBOARD':
                     self._command_state = CommandState.HOVER
-                    self._wait(lambda: False, 1.2, 'the OFFBOARD setpoint stream', raise_on_timeout=False)
+                    self._wait(lambda: False, 1.5, 'the OFFBOARD setpoint stream', raise_on_timeout=False)
             else:
                 modes = mavutil.mode_mapping_byname(self._mav_type) or {}
                 if name not in modes:
