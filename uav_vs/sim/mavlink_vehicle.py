@@ -83,10 +83,9 @@ PX4_STREAMS = {mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0, mavlink.MAVLINK_MSG_ID_SYS
                mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 0.05,
                mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 0.2}
 PX4_TAKEOFF_HEIGHT = 2.5            # MIS_TAKEOFF_ALT [m]
-STREAMABLE = {mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_SYS_STATUS,
-              mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT, mavlink.MAVLINK_MSG_ID_GPS_RAW_INT,
-              mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
-              mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT}
+# What SET_MESSAGE_INTERVAL can stream: PX4 has no EKF_STATUS_REPORT (ardupilotmega).
+STREAMABLE = {ARDUPILOT: frozenset({*PX4_STREAMS, mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT}),
+              PX4: frozenset(PX4_STREAMS)}
 EARTH_RADIUS = 6378137.0
 # EKF_STATUS_REPORT flags before the estimator is ready (attitude and height, no horizontal
 # position: 'constant position' mode) and after (horizontal position, absolute and predicted).
@@ -353,8 +352,7 @@ class MavlinkVehicle:
         refused = mavlink.MAV_RESULT_TEMPORARILY_REJECTED if self._px4 else failed
         if c == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval = int(msg.param1), msg.param2
-            ekf = msg_id == mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT
-            if msg_id not in STREAMABLE or (self._px4 and ekf):   # PX4 has no EKF_STATUS_REPORT
+            if msg_id not in STREAMABLE[self.config.autopilot]:
                 return failed, None
             if interval < 0 or (interval == 0 and msg_id != mavlink.MAVLINK_MSG_ID_HEARTBEAT):
                 self._intervals.pop(msg_id, None)
