@@ -4,8 +4,6 @@ Each topic's message definition comes from rosbags' Jazzy type store; types it l
 are read from the `share/<package>/msg/<Type>.msg` files of the installed message
 packages (the ament prefixes, then this Python's prefix).
 """
-import os
-import sys
 from collections import Counter
 from pathlib import Path
 from typing import Sequence
@@ -15,6 +13,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from uav_vs.bag.reader import BagError
+from uav_vs.install_prefixes import install_prefixes
 
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 
@@ -68,10 +67,10 @@ class BagWriter:
 
 def _msg_definition(msgtype: str) -> str:
     package, kind, name = msgtype.split('/')
-    prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-    for prefix in [*prefixes, sys.prefix]:
-        file = Path(prefix) / 'share' / package / kind / f'{name}.msg'
+    prefixes = install_prefixes()
+    for prefix in prefixes:
+        file = prefix / 'share' / package / kind / f'{name}.msg'
         if file.is_file():
             return file.read_text()
     raise BagError(f'no message definition for {msgtype} (no share/{package}/{kind}/{name}.msg '
-                   f'in {", ".join([*prefixes, sys.prefix])})')
+                   f'in {", ".join(map(str, prefixes))})')

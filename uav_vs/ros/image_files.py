@@ -2,14 +2,13 @@
 ROS user expects: a relative path from the working directory first, then in the
 installed share/uav_vs/config, then beside the uav_vs package and in its sim/assets, so
 the YAMLs' `uav_vs/sim/assets/...` paths work wherever `ros2 run` starts a node."""
-import os
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 import uav_vs
+from uav_vs.install_prefixes import install_prefixes
 from uav_vs.ros.params import ParameterError
 
 
@@ -18,8 +17,7 @@ def candidates(path: str) -> list[Path]:
     given = Path(path)
     if given.is_absolute():
         return [given]
-    prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
-    shares = [Path(prefix) / 'share' / 'uav_vs' / 'config' for prefix in [*prefixes, sys.prefix]]
+    shares = [prefix / 'share' / 'uav_vs' / 'config' for prefix in install_prefixes()]
     package = Path(uav_vs.__file__).resolve().parent
     bases = [Path.cwd(), *shares, package.parent, package / 'sim' / 'assets']
     return list(dict.fromkeys(base / given for base in bases))
