@@ -127,3 +127,25 @@ def match(desc1: np.ndarray, desc2: np.ndarray | None, kind: str = 'sift', ratio
     pairs = matcher.knnMatch(desc1, k=2) if desc2 is None else matcher.knnMatch(desc1, desc2, k=2)
     good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
     return (np.array([m.queryIdx for m in good], int), np.array([m.trainIdx for m in good], int))
+
+
+class DescribedImage:
+    """An image described once (section 2.2) and indexed by FLANN, to match frames against:
+    a target template, a keyframe to relocalise on."""
+
+    def __init__(self, gray: np.ndarray, kind: str = 'sift', max_features: int = 0) -> None:
+        self.kind, self.max_features = kind, max_features
+        self.xy, desc = detect_and_describe(gray, kind, max_features)
+        self._index = make_matcher(kind)
+        if len(desc):
+            self._index.add([desc])
+            self._index.train()
+
+    def match(self, gray: np.ndarray, ratio: float = 0.75) -> tuple[np.ndarray, np.ndarray]:
+        """Keypoints of `gray` matched to this image's by the ratio test: (this image's
+        (M,2), the frame's (M,2)), pixels."""
+        if len(self.xy) < 2:
+            return np.empty((0, 2)), np.empty((0, 2))
+        xy, desc = detect_and_describe(gray, self.kind, self.max_features)
+        i_frame, i_self = match(desc, None, self.kind, ratio, matcher=self._index)
+        return self.xy[i_self], xy[i_frame]

@@ -40,7 +40,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from uav_vs.vision.camera import Camera
-from uav_vs.vision.features import detect_and_describe, make_matcher, match
+from uav_vs.vision.features import DescribedImage
 from uav_vs.vision.homography import estimate_homography
 from uav_vs.vision.klt import KltParams, KltTracker
 
@@ -168,7 +168,7 @@ class PlanePoseEstimator:
         self._xyz = np.empty((0, 3))                # their plane points (X, Y, 0), m
         self._H_prev = np.eye(3)                    # keyframe -> last good frame (ideal px)
         self._motion = np.eye(3)                    # last good inter-frame homography
-        self._key_features: tuple | None = None    # keyframe's ideal px, descriptor index
+        self._key_features: DescribedImage | None = None   # the keyframe's, when needed
         self._centre = np.zeros(3)                  # camera centre of the last good frame, m
         self.reanchors = 0
         self.relocalisations = 0
@@ -289,24 +289,14 @@ class PlanePoseEstimator:
         """Keyframe-to-frame homography (ideal px) from descriptor matches, or None."""
         p = self.params
         if self._key_features is None:      # described once per keyframe, when first needed
-            xy, desc = detect_and_describe(self._key, p.relocalise_features,
-                                           p.relocalise_max_features)
-            index = None
-            if len(xy) >= p.min_inliers:
-                index = make_matcher(p.relocalise_features)
-                index.add([desc])
-                index.train()
-                xy = self.camera.undistort(xy)
-            self._key_features = (xy, index)
-        kf_px, index = self._key_features
-        if index is None:
+            self._key_features = DescribedImage(self._key, p.relocalise_features,
+                                                p.relocalise_max_features)
+        if len(self._key_features.xy) < p.min_inliers:
             return None
-        xy, desc = detect_and_describe(gray, p.relocalise_features, p.relocalise_max_features)
-        i_frame, i_key = match(desc, None, p.relocalise_features, p.relocalise_ratio,
-                               matcher=index)
-        if len(i_frame) < p.min_inliers:
+        key_px, frame_px = self._key_features.match(gray, p.relocalise_ratio)
+        if len(key_px) < p.min_inliers:
             return None
-        est = estimate_homography(kf_px[i_key], self.camera.undistort(xy[i_frame]),
+        est = estimate_homography(self.camera.undistort(key_px), self.camera.undistort(frame_px),
                                   method=p.method, threshold_px=p.threshold_px,
                                   confidence=p.confidence, max_trials=p.max_trials,
                                   min_inliers=p.min_inliers, rng=self._rng)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uav_vs.vision.features import as_gray, detect_and_describe, make_matcher, match
+from uav_vs.vision.features import DescribedImage, as_gray
 from uav_vs.vision.homography import estimate_homography
 
 
@@ -35,20 +35,16 @@ class PlanarTargetTracker:
                  method: str = 'ransac', threshold_px: float = 3.0, min_inliers: int = 12,
                  max_features: int = 0, rng: np.random.Generator | int | None = 0):
         template = as_gray(template_gray)
-        self.kind, self.ratio, self.method = kind, ratio, method
+        self.ratio, self.method = ratio, method
         self.threshold_px, self.min_inliers = threshold_px, min_inliers
-        self.max_features = max_features
         self.rng = np.random.default_rng(rng)
-        self.xy, self.desc = detect_and_describe(template, kind, max_features)
-        if len(self.xy) < min_inliers:
-            raise ValueError(f'template has only {len(self.xy)} {kind} features, '
+        self.template = DescribedImage(template, kind, max_features)   # indexed once
+        if len(self.template.xy) < min_inliers:
+            raise ValueError(f'template has only {len(self.template.xy)} {kind} features, '
                              f'fewer than min_inliers={min_inliers}')
         h, w = template.shape
         self.corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], float)
         self.center = np.array([w / 2, h / 2])
-        self.matcher = make_matcher(kind)
-        self.matcher.add([self.desc])               # the template index is built once
-        self.matcher.train()
 
     def find(self, gray: np.ndarray) -> TargetResult:
         """Locate the template in one frame; a failure says why (no exception on bad frames)."""
@@ -56,9 +52,8 @@ class PlanarTargetTracker:
             frame = as_gray(gray)
         except ValueError as err:
             return TargetResult(False, None, None, None, 0, str(err))
-        xy, desc = detect_and_describe(frame, self.kind, self.max_features)
-        i_frame, i_tmpl = match(desc, None, self.kind, self.ratio, matcher=self.matcher)
-        r = estimate_homography(self.xy[i_tmpl], xy[i_frame], self.method, self.threshold_px,
+        template_px, frame_px = self.template.match(frame, self.ratio)
+        r = estimate_homography(template_px, frame_px, self.method, self.threshold_px,
                                 min_inliers=self.min_inliers, rng=self.rng)
         if not r.ok:
             return TargetResult(False, None, None, None, int(r.inliers.sum()), r.reason)
