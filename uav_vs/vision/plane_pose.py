@@ -159,8 +159,8 @@ class PlanePoseEstimator:
         self._rng = np.random.default_rng(seed)
         self._warp = KeyframeWarp(camera)
         # Features start half a window inside the image.
+        self._margin = m = params.klt.win_size // 2 + 1
         self._region = np.zeros((camera.height, camera.width), np.uint8)
-        m = params.klt.win_size // 2 + 1
         self._region[m:-m, m:-m] = 255
         self._key: np.ndarray | None = None        # keyframe, raw image
         self._H_k = np.eye(3)                       # plane -> keyframe ideal pixels
@@ -231,7 +231,7 @@ class PlanePoseEstimator:
                 retry = self._track(gray, H, H, dict(stats))
                 if not isinstance(retry, str):
                     self.relocalisations += 1
-                    retry.stats.update(relocalised=True, relocalisations=self.relocalisations)
+                    retry.stats.update(relocalised=True, **self._counters())
                     return retry
                 self._kf_px, self._xyz = tracks
                 result = f'{result}; relocalised, then {retry}'
@@ -312,7 +312,7 @@ class PlanePoseEstimator:
         topped up with keyframe features where the frame overlaps it (plane points from H_k)."""
         p = self.params
         raw = self._warp.distort(_apply(H, self._kf_px))
-        m = p.klt.win_size // 2 + 1
+        m = self._margin
         keep = np.all((raw >= m) & (raw < [self.camera.width - m, self.camera.height - m]), axis=1)
         self._kf_px, self._xyz = self._kf_px[keep], self._xyz[keep]
         overlap = self._warp.warp(self._region, np.linalg.inv(H))
@@ -356,19 +356,21 @@ class PlanePoseEstimator:
         return (f'blurred or texture-less image (sharpness {sharp:.1f} < '
                 f'{self.params.min_sharpness:g})')
 
+    def _counters(self) -> dict:
+        return dict(reanchors=self.reanchors, relocalisations=self.relocalisations,
+                    lost_frames=self.lost_frames)
+
     def _lost(self, reason: str, stats: dict) -> PlanePose:
         self.lost_frames += 1
         self._motion = np.eye(3)
-        stats.update(reanchors=self.reanchors, relocalisations=self.relocalisations,
-                     lost_frames=self.lost_frames)
+        stats.update(self._counters())
         return PlanePose(False, reason=reason, stats=stats)
 
     def _result(self, R: np.ndarray, t: np.ndarray, stats: dict) -> PlanePose:
         R_wc, c = body_pose(R, t, None)
         R_w, pos = body_pose(R, t, self.camera_to_body)
         self._centre = c
-        stats.update(reanchors=self.reanchors, relocalisations=self.relocalisations,
-                     lost_frames=self.lost_frames)
+        stats.update(self._counters())
         return PlanePose(True, pos, Rotation.from_matrix(R_w).as_quat(), R_w, c, R_wc,
                          plane_homography(self.camera.K, R, t), '', stats)
 
