@@ -12,6 +12,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from uav_vs.autopilot.frames import wrap_angle
 from uav_vs.flight_report import LABELS, SOURCES, FlightLog, interpolate
 
 STYLE = {'truth': dict(color='k', lw=1.2, ls='--'), 'ground': dict(color='tab:red', lw=1.0),
@@ -78,7 +79,7 @@ def _errors(fig: Figure, log: FlightLog, t0: int) -> None:
         t = _seconds(track.stamps[inside], t0)
         ax_p.plot(t, 100 * np.linalg.norm(track.positions[inside] - p, axis=1),
                   label=LABELS[name], **STYLE[name])
-        dyaw = (track.yaws[inside] - yaw + np.pi) % (2 * np.pi) - np.pi
+        dyaw = wrap_angle(track.yaws[inside] - yaw)
         ax_yaw.plot(t, np.degrees(dyaw), **STYLE[name])
     ax_p.set_ylabel('position error, cm')
     ax_yaw.set_ylabel('yaw error, deg')

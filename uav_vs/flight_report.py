@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from uav_vs.autopilot.frames import wrap_angle
+
 SOURCES = ('ground', 'onboard', 'odom')
 LABELS = {'truth': 'simulator truth', 'ground': 'ground/pose (trinocular, section 3)',
           'onboard': 'onboard/pose (homography, section 4)',
@@ -283,7 +285,7 @@ def score_source(track: PoseTrack, truth: PoseTrack, exact: bool, start_ns: int,
         nan = math.nan
         return SourceScore(0, nan, nan, nan, nan, nan)
     dp = np.linalg.norm(track.positions[keep] - true_p, axis=1)
-    dyaw = np.degrees(angle_difference(track.yaws[keep], true_yaw))
+    dyaw = np.degrees(wrap_angle(track.yaws[keep] - true_yaw))
     latency = (track.received[keep] - track.stamps[keep]) * 1e-6
     return SourceScore(int(keep.sum()), rms(dp), float(dp.max()), rms(dyaw),
                        float(np.median(latency)), float(np.percentile(latency, 95)))
@@ -319,7 +321,7 @@ def score_setpoint(event: SetpointEvent, log: FlightLog) -> SetpointScore:
     window = (t.stamps >= event.settled_ns) & (t.stamps <= event.reached_ns)
     target = np.array(event.target)
     dp = np.linalg.norm(t.positions[window] - target[:3], axis=1)
-    dyaw = np.degrees(np.abs(angle_difference(t.yaws[window], target[3])))
+    dyaw = np.degrees(np.abs(wrap_angle(t.yaws[window] - target[3])))
     settle = max(0.0, (event.settled_ns - event.start_ns) * 1e-9)
     if not len(dp):
         return SetpointScore(event.name, event.source, event.target, True, settle, nan, nan, nan,
@@ -334,11 +336,6 @@ def interpolate(track: PoseTrack, stamps: np.ndarray) -> tuple[np.ndarray, np.nd
     q = (np.asarray(stamps) - track.stamps[0]) * 1e-9
     positions = np.column_stack([np.interp(q, t, track.positions[:, k]) for k in range(3)])
     return positions, np.interp(q, t, np.unwrap(track.yaws))
-
-
-def angle_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a - b wrapped to [-pi, pi)."""
-    return (np.asarray(a) - np.asarray(b) + np.pi) % (2 * np.pi) - np.pi
 
 
 def rms(a: np.ndarray) -> float:

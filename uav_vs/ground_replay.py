@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from uav_vs import graph
-from uav_vs.pose_replay import pose_errors, replay_bag, rms
+from uav_vs.flight_report import rms
+from uav_vs.pose_replay import pose_errors, replay_bag
 
 
 @dataclass

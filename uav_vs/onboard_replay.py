@@ -13,7 +13,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from uav_vs import graph
-from uav_vs.pose_replay import PoseErrors, pose_errors, replay_bag, rms
+from uav_vs.flight_report import rms
+from uav_vs.pose_replay import PoseErrors, pose_errors, replay_bag
 from uav_vs.vision.ground_config import read_params_file
 from uav_vs.vision.onboard_config import load_onboard_config
 

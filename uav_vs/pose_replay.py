@@ -5,7 +5,6 @@ message of the bag is published raw (recorded CDR, recorded stamps) with real rc
 publishers at the recorded rate, once the nodes subscribe; the poses the nodes publish
 are collected by header stamp and matched to the bag's `truth/pose` of the same stamp.
 """
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,10 +41,6 @@ class PoseErrors:
     attitude_deg: np.ndarray         # rotation angle of R_true^T R
     truth_positions: np.ndarray      # (n, 3)
     truth_quaternions: np.ndarray    # (n, 4) xyzw
-
-
-def rms(a: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.square(a)))) if len(a) else math.nan
 
 
 def replay_bag(bag: Path, start_nodes: Callable[[], list[Popen]], pose_topic: str,

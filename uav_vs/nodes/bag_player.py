@@ -21,7 +21,6 @@ from collections import Counter
 from typing import TextIO
 
 import rclpy
-from builtin_interfaces.msg import Time
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.publisher import Publisher
@@ -31,6 +30,7 @@ from rosgraph_msgs.msg import Clock
 from uav_vs.bag.play import Plan, PlayOptions, parse_remaps, progress_line
 from uav_vs.bag.reader import Bag, BagError
 from uav_vs.ros.cli import split_ros_args
+from uav_vs.ros.convert import ns_to_stamp
 from uav_vs.ros.replay import lossless_qos, message_class
 
 ACK_TIMEOUT_S = 30.0
@@ -109,8 +109,7 @@ class BagPlayer:
                     if rate > 0:
                         bag_ns = self.plan.bag_time_ns(now)
                     if self.clock_pub and now >= next_clock:
-                        self.clock_pub.publish(Clock(clock=Time(sec=bag_ns // 10**9,
-                                                                nanosec=bag_ns % 10**9)))
+                        self.clock_pub.publish(Clock(clock=ns_to_stamp(bag_ns)))
                         next_clock = now + self.clock_period
                     if progress and now >= next_progress:
                         progress.write('\r' + progress_line(bag_ns - start_ns, self.plan.span_ns,

@@ -70,11 +70,11 @@ def figure_eight(t: float, size: tuple[float, float] = (1.4, 0.6), altitude: flo
     position = np.array([a * s1, b * s2, altitude + 0.3 * np.sin(0.5 * w * t)])
     accel = np.array([-a * w * w * s1, -4 * b * w * w * s2, -0.075 * w * w * np.sin(0.5 * w * t)])
     yaw = float(np.angle(np.exp(1j * (yaw0 + yaw_rate * t))))
-    Rz = _rot_z(yaw)
+    Rz = rot_z(yaw)
     ab = Rz.T @ accel                       # acceleration in the yawed (heading) frame
     pitch = np.arctan2(ab[0], GRAVITY + ab[2])
     roll = np.arctan2(-ab[1], np.hypot(ab[0], GRAVITY + ab[2]))
-    return Pose(float(t), position, yaw, Rz @ _rot_y(pitch) @ _rot_x(roll))
+    return Pose(float(t), position, yaw, Rz @ rot_y(pitch) @ rot_x(roll))
 
 
 def landmark_albedo(hue: np.ndarray) -> np.ndarray:
@@ -287,16 +287,19 @@ def _ground_image(cam: Camera, rays: np.ndarray, texture: np.ndarray, size: floa
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-def _rot_x(a: float) -> np.ndarray:
+def rot_x(a: float) -> np.ndarray:
+    """Rotation matrix about x by `a` rad."""
     c, s = np.cos(a), np.sin(a)
     return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
 
 
-def _rot_y(a: float) -> np.ndarray:
+def rot_y(a: float) -> np.ndarray:
+    """Rotation matrix about y by `a` rad."""
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
 
 
-def _rot_z(a: float) -> np.ndarray:
+def rot_z(a: float) -> np.ndarray:
+    """Rotation matrix about z by `a` rad."""
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from uav_vs.autopilot.frames import ned_to_enu, yaw_ned_to_enu
-from uav_vs.sim.ground_scene import GroundScene, Pose
+from uav_vs.sim.ground_scene import GroundScene, Pose, rot_z
 from uav_vs.sim.mavlink_vehicle import MavlinkVehicle, Truth
 from uav_vs.sim.onboard_scene import OnboardScene
 from uav_vs.vision.body_pose import quaternion_xyzw
@@ -44,10 +44,8 @@ class VehicleState:
 def vehicle_state(truth: Truth) -> VehicleState:
     """The simulator's NED truth as base_link in world (REP-103/105)."""
     yaw = float(yaw_ned_to_enu(truth.yaw))
-    c, s = np.cos(yaw), np.sin(yaw)
-    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return VehicleState(truth.time, ned_to_enu(truth.position), ned_to_enu(truth.velocity), yaw,
-                        R, truth.armed, truth.mode, truth.flying)
+                        rot_z(yaw), truth.armed, truth.mode, truth.flying)
 
 
 class SimWorld:
