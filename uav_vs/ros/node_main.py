@@ -7,7 +7,7 @@ from typing import Callable
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.event_handler import PublisherEventCallbacks
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 
@@ -36,15 +36,12 @@ def keep_freed_memory() -> None:
         mallopt(_M_TRIM_THRESHOLD, _HEAP_KEEP_BYTES)
 
 
-def run(factory: Callable[[], Node], name: str, args: list[str] | None = None,
-        threads: int = 1) -> None:
+def run(factory: Callable[[], Node], name: str, args: list[str] | None = None) -> None:
     """Keep freed memory, rclpy.init, build the node, spin until SIGINT/SIGTERM, shut down.
 
     A configuration error (a `--params-file` that rcl would refuse: missing, not
     YAML, a list of mixed types; or a ValueError raised while the node is being
     built) is logged as one FATAL line naming the parameter and exits with status 2.
-    `threads` > 1 spins a MultiThreadedExecutor, for nodes whose callback groups
-    let slow callbacks run beside fast ones.
     """
     keep_freed_memory()
     problem = check_params_files(sys.argv if args is None else args)
@@ -62,7 +59,7 @@ def run(factory: Callable[[], Node], name: str, args: list[str] | None = None,
         rclpy.try_shutdown()
         return
     try:
-        rclpy.spin(node, MultiThreadedExecutor(threads) if threads > 1 else None)
+        rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
