@@ -26,6 +26,7 @@ from uav_vs.vision.klt import KltParams
 from uav_vs.vision.plane_pose import PlanePoseParams, camera_pose, plane_homography
 
 REQUIRED = None
+_P = PlanePoseParams()   # the estimator's defaults are the settings' defaults
 INIT_MODES = ('pose', 'reference_points')
 
 
@@ -68,51 +69,62 @@ SETTINGS = (
             'x1 y1 x2 y2 ... (>= 4 points), m', size=0),
     Setting('init.image_points', 'floats', [0.0] * 8, 'their raw pixels in the first frame, '
             'u1 v1 u2 v2 ...', size=0),
-    Setting('klt.win_size', 'int', 15, 'L-K window side, odd, px', 3, 99),
-    Setting('klt.max_level', 'int', 3, 'deepest pyramid level (section 2.1.2)', 0, 6),
-    Setting('klt.max_iterations', 'int', 20, 'L-K iterations per pyramid level', 1, 1000),
-    Setting('klt.epsilon', 'float', 0.03, 'L-K stops when its update is below this, px',
-            1e-6, 10.0),
-    Setting('klt.min_eig_threshold', 'float', 1e-3, 'reject L-K windows flatter than this',
-            0.0, 1.0),
-    Setting('klt.fb_max_error_px', 'float', 0.5, 'forward-backward disagreement allowed, px',
-            0.01, 50.0),
-    Setting('features.max_features', 'int', 120, 'features kept after a re-anchor', 8, 5000),
-    Setting('features.min_tracks', 'int', 20, 'fewer surviving tracks is a tracking loss',
-            4, 5000),
-    Setting('features.quality_level', 'float', 0.01, 'GFTT corner strength relative to the '
-            'best', 1e-4, 0.99),
-    Setting('features.min_distance_px', 'float', 20.0, 'spacing between features, px',
-            1.0, 1000.0),
-    Setting('features.block_size', 'int', 5, 'GFTT eigenvalue window at the detection level, '
-            'odd, px', 3, 31),
-    Setting('features.detect_level', 'int', 1, 'pyramid level features are detected on', 0, 3),
-    Setting('homography.method', 'str', 'opencv_magsac', 'robust homography estimator',
+    Setting('klt.win_size', 'int', _P.klt.win_size, 'L-K window side, odd, px', 3, 99),
+    Setting('klt.max_level', 'int', _P.klt.max_level, 'deepest pyramid level (section 2.1.2)',
+            0, 6),
+    Setting('klt.max_iterations', 'int', _P.klt.max_iterations,
+            'L-K iterations per pyramid level', 1, 1000),
+    Setting('klt.epsilon', 'float', _P.klt.epsilon,
+            'L-K stops when its update is below this, px', 1e-6, 10.0),
+    Setting('klt.min_eig_threshold', 'float', _P.klt.min_eig_threshold,
+            'reject L-K windows flatter than this', 0.0, 1.0),
+    Setting('klt.fb_max_error_px', 'float', _P.klt.fb_max_error_px,
+            'forward-backward disagreement allowed, px', 0.01, 50.0),
+    Setting('features.max_features', 'int', _P.max_features, 'features kept after a re-anchor',
+            8, 5000),
+    Setting('features.min_tracks', 'int', _P.min_tracks,
+            'fewer surviving tracks is a tracking loss', 4, 5000),
+    Setting('features.quality_level', 'float', _P.klt.quality_level,
+            'GFTT corner strength relative to the best', 1e-4, 0.99),
+    Setting('features.min_distance_px', 'float', _P.klt.min_distance_px,
+            'spacing between features, px', 1.0, 1000.0),
+    Setting('features.block_size', 'int', _P.klt.block_size,
+            'GFTT eigenvalue window at the detection level, odd, px', 3, 31),
+    Setting('features.detect_level', 'int', _P.klt.detect_level,
+            'pyramid level features are detected on', 0, 3),
+    Setting('homography.method', 'str', _P.method, 'robust homography estimator',
             choices=METHODS),
-    Setting('homography.threshold_px', 'float', 2.0, 'inlier distance, px', 0.1, 50.0),
-    Setting('homography.confidence', 'float', 0.995, 'RANSAC confidence p (Algorithm 1)',
+    Setting('homography.threshold_px', 'float', _P.threshold_px, 'inlier distance, px',
+            0.1, 50.0),
+    Setting('homography.confidence', 'float', _P.confidence, 'RANSAC confidence p (Algorithm 1)',
             0.5, 0.999999),
-    Setting('homography.max_trials', 'int', 500, 'RANSAC trial cap', 1, 100000),
-    Setting('homography.min_inliers', 'int', 15, 'fewer inliers is a tracking loss', 4, 5000),
-    Setting('pose.max_rms_px', 'float', 1.5, 'refined pose reprojection RMS above this is a '
-            'loss, px', 0.01, 100.0),
-    Setting('keyframe.reanchor_inliers', 'int', 70, 're-anchor when inliers drop below this',
+    Setting('homography.max_trials', 'int', _P.max_trials, 'RANSAC trial cap', 1, 100000),
+    Setting('homography.min_inliers', 'int', _P.min_inliers, 'fewer inliers is a tracking loss',
             4, 5000),
-    Setting('keyframe.reanchor_coverage', 'float', 0.35, "re-anchor when the inliers' bounding "
-            'box covers less than this fraction of the image', 0.0, 0.99),
-    Setting('relocalise.after_frames', 'int', 2, 'consecutive lost frames before the keyframe '
-            'is matched by descriptors; 0 never', 0, 10000),
-    Setting('relocalise.features', 'str', 'orb', 'descriptor for relocalisation', choices=KINDS),
-    Setting('relocalise.max_features', 'int', 1000, 'keypoints per image for relocalisation; '
-            '0 = every SIFT keypoint', 0, 100000),
-    Setting('relocalise.ratio', 'float', 0.8, "Lowe's ratio test for relocalisation matches",
-            0.1, 1.0),
-    Setting('relocalise.max_shift', 'float', 1.0, 'a relocalised camera farther than this '
-            'times its last height from its last position is refused', 0.0, 100.0),
-    Setting('image_quality.blur_level', 'int', 2, 'pyramid level the sharpness is measured on',
-            0, 4),
-    Setting('image_quality.min_sharpness', 'float', 50.0, 'variance of the Laplacian below '
-            'this is a blurred or texture-less image (loss)', 0.0, 1e6),
+    Setting('pose.max_rms_px', 'float', _P.max_rms_px,
+            'refined pose reprojection RMS above this is a loss, px', 0.01, 100.0),
+    Setting('keyframe.reanchor_inliers', 'int', _P.reanchor_inliers,
+            're-anchor when inliers drop below this', 4, 5000),
+    Setting('keyframe.reanchor_coverage', 'float', _P.reanchor_coverage,
+            "re-anchor when the inliers' bounding box covers less than this fraction of the "
+            'image', 0.0, 0.99),
+    Setting('relocalise.after_frames', 'int', _P.relocalise_after,
+            'consecutive lost frames before the keyframe is matched by descriptors; 0 never',
+            0, 10000),
+    Setting('relocalise.features', 'str', _P.relocalise_features, 'descriptor for relocalisation',
+            choices=KINDS),
+    Setting('relocalise.max_features', 'int', _P.relocalise_max_features,
+            'keypoints per image for relocalisation; 0 = every SIFT keypoint', 0, 100000),
+    Setting('relocalise.ratio', 'float', _P.relocalise_ratio,
+            "Lowe's ratio test for relocalisation matches", 0.1, 1.0),
+    Setting('relocalise.max_shift', 'float', _P.relocalise_max_shift,
+            'a relocalised camera farther than this times its last height from its last '
+            'position is refused', 0.0, 100.0),
+    Setting('image_quality.blur_level', 'int', _P.blur_level,
+            'pyramid level the sharpness is measured on', 0, 4),
+    Setting('image_quality.min_sharpness', 'float', _P.min_sharpness,
+            'variance of the Laplacian below this is a blurred or texture-less image (loss)',
+            0.0, 1e6),
 )
 
 @dataclass(frozen=True)
