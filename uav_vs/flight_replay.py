@@ -31,6 +31,7 @@ from uav_vs.bag.reader import BagMessage, read_messages
 from uav_vs.flight_recorder import FlightRecorder, MissionError
 from uav_vs.flight_report import FlightLog
 from uav_vs.ground_replay import ground_graph
+from uav_vs.onboard_replay import onboard_graph
 from uav_vs.ros.convert import msg_to_pose, stamp_to_ns
 from uav_vs.ros.replay import RawPublishers, message_class
 from uav_vs.scenario import Configs
@@ -63,9 +64,8 @@ def replay_flight(bag: Path, log_dir: Path, configs: Configs = Configs(), rate: 
             procs.update(zip([*cameras, 'trinocular_pose_node'],
                              ground_graph(configs.ground, cameras, log_dir)))
         if has['onboard']:
-            procs['homography_pose_node'] = graph.start(
-                'homography_pose_node', ['--params-file', str(configs.onboard),
-                                         *_init_args(onboard_init)], log_dir)
+            [procs['homography_pose_node']] = onboard_graph(configs.onboard, log_dir,
+                                                            _init_args(onboard_init))
         if 'setpoint' in topics:
             source = 'ground' if 'trinocular_pose_node' in procs else 'onboard'
             procs['fuzzy_controller_node'] = graph.start('fuzzy_controller_node', [
