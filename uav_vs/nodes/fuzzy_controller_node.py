@@ -82,7 +82,7 @@ class FuzzyControllerNode(Node):
         self.reason = 'no cycle yet'
         self.period = 1.0 / p['controller.rate']
         self.measured: Time | None = None     # stamp of the last measurement taken
-        self.measured_at = -math.inf           # when a command was last sent for it
+        self.measured_at = -math.inf           # when it arrived (the floor counts from it)
         self.pub = self.create_publisher(TwistStamped, 'cmd_vel', 10)
         if tracking:
             self.create_subscription(PolygonStamped, p['controller.target_topic'],
