@@ -179,13 +179,18 @@ class Bag:
         else:
             raise BagError(f'{self.path}: not a bag (expected a folder, .mcap, .db3 or .bag)')
 
-    def _open_rosbag2_folder(self) -> None:
-        reader = Rosbag2Reader(self.path)
+    def _opened(self, reader: Rosbag1Reader | Rosbag2Reader, culprit: Callable[[], Path],
+                what: str = 'bag') -> Rosbag1Reader | Rosbag2Reader:
+        """`reader` opened, to be closed with the bag; a BagError naming culprit() if not."""
         try:
             reader.open()
         except Exception as err:
-            raise BagError(f'{self._failing_file()}: cannot open bag: {err}') from err
+            raise BagError(f'{culprit()}: cannot open {what}: {err}') from err
         self._stack.callback(reader.close)
+        return reader
+
+    def _open_rosbag2_folder(self) -> None:
+        reader = self._opened(Rosbag2Reader(self.path), self._failing_file)
         for storage in reader.storage.storages:
             self._sources.append(_Source(self.path / storage.path.name, storage, _cdr))
         self._set_topics(reader.connections, reader.start_time, reader.end_time)
@@ -204,24 +209,14 @@ class Bag:
     def _open_storage_files(self, files: list[Path]) -> None:
         readers = []
         for file in files:
-            reader = Rosbag2Reader(file)
-            try:
-                reader.open()
-            except Exception as err:
-                raise BagError(f'{file}: cannot open bag: {err}') from err
-            self._stack.callback(reader.close)
+            reader = self._opened(Rosbag2Reader(file), lambda: file)   # called at once
             readers.append(reader)
             self._sources.append(_Source(file, reader, _cdr))
         self._set_topics([c for r in readers for c in r.connections],
                          min(r.start_time for r in readers), max(r.end_time for r in readers))
 
     def _open_rosbag1(self) -> None:
-        reader = Rosbag1Reader(self.path)
-        try:
-            reader.open()
-        except Exception as err:
-            raise BagError(f'{self.path}: cannot open ROS 1 bag: {err}') from err
-        self._stack.callback(reader.close)
+        reader = self._opened(Rosbag1Reader(self.path), lambda: self.path, 'ROS 1 bag')
         types = {}
         for conn in reader.connections:
             if conn.msgdef.format == MessageDefinitionFormat.MSG:
