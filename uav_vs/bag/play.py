@@ -65,7 +65,6 @@ class Plan:
         end_ns = bag.end_ns if options.duration_s is None else min(
             bag.end_ns, self.start_ns + round(options.duration_s * 1e9))
         self.span_ns = max(end_ns - self.start_ns, 0)      # bag time of one pass
-        self._bounded = options.start_s > 0 or options.duration_s is not None
         self._end_ns = end_ns
 
     def name(self, topic: str) -> str:
@@ -93,15 +92,12 @@ class Plan:
         """
         for k in count() if self.options.loop else range(1):
             n = 0
-            for msg in self.bag.messages(self.topics, *self._bounds()):
+            for msg in self.bag.messages(self.topics, self.start_ns, self._end_ns):
                 n += 1
                 yield self.due_s(k, msg.t_ns), msg
             if n == 0:
                 raise BagError(f'{self.bag.path}: no message of {", ".join(self.topics)} '
                                f'between {self.options.start_s} s and the end of the window')
-
-    def _bounds(self) -> tuple[int | None, int | None]:
-        return (self.start_ns, self._end_ns) if self._bounded else (None, None)
 
 
 def progress_line(elapsed_ns: int, span_ns: int, published: int, width: int = 30) -> str:

@@ -136,9 +136,9 @@ class Bag:
                  stop_ns: int | None = None) -> Iterator[BagMessage]:
         """Yield the messages of `topics` (all if None) with start_ns <= t < stop_ns, in order.
 
-        Reading the whole bag (no time bounds) checks the count per topic against the
-        bag's index and raises BagError on any difference, so an unreadable bag is never
-        played as an empty or shortened stream.
+        Reading the whole bag (no bounds, or bounds around all of it) checks the count per
+        topic against the bag's index and raises BagError on any difference, so an
+        unreadable bag is never played as an empty or shortened stream.
         """
         wanted = set(self.topics) if topics is None else set(topics)
         got: Counter[str] = Counter()
@@ -153,7 +153,9 @@ class Bag:
             except Exception as err:
                 raise BagError(f'{source.file}: corrupt bag after {sum(got.values())} messages: '
                                f'{err}') from err
-        if start_ns is None and stop_ns is None:
+        whole = ((start_ns is None or start_ns <= self.start_ns)
+                 and (stop_ns is None or stop_ns >= self.end_ns))
+        if whole:
             short = {t: (got[t], self.topics[t].count) for t in sorted(wanted & set(self.topics))
                      if got[t] != self.topics[t].count}
             if short:
