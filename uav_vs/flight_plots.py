@@ -13,7 +13,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from uav_vs.autopilot.frames import wrap_angle
-from uav_vs.flight_report import LABELS, SOURCES, FlightLog, interpolate
+from uav_vs.flight_report import LABELS, SOURCES, FlightLog, interpolate, within
 
 STYLE = {'truth': dict(color='k', lw=1.2, ls='--'), 'ground': dict(color='tab:red', lw=1.0),
          'onboard': dict(color='tab:blue', lw=1.0), 'odom': dict(color='tab:green', lw=1.0)}
@@ -71,8 +71,7 @@ def _errors(fig: Figure, log: FlightLog, t0: int) -> None:
     truth = log.truth
     for name in SOURCES:
         track = getattr(log, name)
-        inside = (track.stamps >= truth.stamps[0]) & (track.stamps <= truth.stamps[-1]) \
-            if len(truth) else np.zeros(len(track), bool)
+        inside = within(truth, track.stamps)
         if not inside.any():
             continue
         p, yaw = interpolate(truth, track.stamps[inside])

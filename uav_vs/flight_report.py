@@ -278,8 +278,7 @@ def score_source(track: PoseTrack, truth: PoseTrack, exact: bool, start_ns: int,
         rows = [index[int(s)] for s in track.stamps[keep]]
         true_p, true_yaw = truth.positions[rows], truth.yaws[rows]
     else:
-        keep &= (track.stamps >= truth.stamps[0]) & (track.stamps <= truth.stamps[-1]) \
-            if len(truth) else np.zeros(len(track), bool)
+        keep &= within(truth, track.stamps)
         true_p, true_yaw = interpolate(truth, track.stamps[keep])
     if not keep.any():
         nan = math.nan
@@ -328,6 +327,13 @@ def score_setpoint(event: SetpointEvent, log: FlightLog) -> SetpointScore:
                              nan)
     return SetpointScore(event.name, event.source, event.target, True, settle, rms(dp),
                          float(dp.max()), float(dp[-1]), float(dyaw.max()))
+
+
+def within(track: PoseTrack, stamps: np.ndarray) -> np.ndarray:
+    """Which `stamps` lie inside `track`'s span, where it can be interpolated."""
+    if not len(track):
+        return np.zeros(len(stamps), bool)
+    return (stamps >= track.stamps[0]) & (stamps <= track.stamps[-1])
 
 
 def interpolate(track: PoseTrack, stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
