@@ -306,6 +306,8 @@ def test_reference_points_give_the_same_first_homography(cfg, flat_params):
     ('homography.method', 'best', ValueError, 'homography.method'),
     ('features.min_tracks', 500, ValueError, 'features.min_tracks'),
     ('image_quality.min_sharpness', -1.0, ValueError, 'image_quality.min_sharpness'),
+    ('relocalise.features', 'akaze', ValueError, 'relocalise.features: expected one of sift, orb'),
+    ('relocalise.ratio', 1.5, ValueError, 'relocalise.ratio'),
 ])
 def test_bad_parameters_name_themselves(flat_params, key, value, error, words):
     params = {**flat_params, key: value}
