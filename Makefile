@@ -8,32 +8,54 @@ STAMP := $(VENV)/.installed
 export AMENT_PREFIX_PATH := $(abspath $(VENV))
 export FASTRTPS_DEFAULT_PROFILES_FILE := $(abspath config/fastdds_shm.xml)
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
-export PATH := $(BIN):$(PATH)
+SYSTEM_PATH := $(PATH)
+export PATH := $(BIN):$(SYSTEM_PATH)
 
 # An editable install: code and config are used from the checkout, so only these
-# files change what is installed.
-SOURCES := setup.py setup.cfg package.xml requirements.txt requirements-dev.txt \
-	tools/install_ros_prefix.py $(wildcard config/*)
+# files (and the interface definitions built into the venv) change what is installed.
+SOURCES := setup.py setup.cfg package.xml requirements-tools.txt \
+	tools/install_ros_prefix.py $(wildcard config/*) $(wildcard launch/*) \
+	tools/build_interfaces.py $(shell find tools/interfaces -type f)
 
-.PHONY: install test bench demo clean
+# The same suite on the versions a ROS 2 Jazzy host on Ubuntu 24.04 installs from apt,
+# in its own venv, with the environment above pointed at that venv.
+UBUNTU_VENV := .venv-ubuntu2404
+UBUNTU_BIN := $(abspath $(UBUNTU_VENV))/bin
+UBUNTU_STAMP := $(UBUNTU_VENV)/.installed
+
+.PHONY: install test test-ubuntu2404 bench demo clean
 
 install: $(STAMP)
 
-$(STAMP): $(SOURCES)
-	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q -r requirements-dev.txt
-	$(BIN)/python -m pip install -q --no-deps --no-build-isolation -e .
-	$(BIN)/python tools/install_ros_prefix.py
-	touch $(STAMP)
+# One recipe for both venvs: $(1) the venv, $(2) its requirements file.
+define install_venv
+	test -x $(1)/bin/python || $(PYTHON) -m venv $(1)
+	$(1)/bin/python -m pip install -q -r $(2)
+	$(1)/bin/python -m pip install -q --no-deps --no-build-isolation -e .
+	$(1)/bin/python tools/install_ros_prefix.py
+	$(1)/bin/python tools/build_interfaces.py
+	touch $(1)/.installed
+endef
+
+$(STAMP): $(SOURCES) requirements.txt requirements-dev.txt
+	$(call install_venv,$(VENV),requirements-dev.txt)
+
+$(UBUNTU_STAMP): $(SOURCES) requirements-ubuntu2404.txt
+	$(call install_venv,$(UBUNTU_VENV),requirements-ubuntu2404.txt)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 test
+
+test-ubuntu2404: export AMENT_PREFIX_PATH := $(abspath $(UBUNTU_VENV))
+test-ubuntu2404: export PATH := $(UBUNTU_BIN):$(SYSTEM_PATH)
+test-ubuntu2404: $(UBUNTU_STAMP)
+	$(UBUNTU_BIN)/python -m pytest -n 2 test
 
 bench: $(STAMP)
 	$(BIN)/python -m bench
 
 demo: $(STAMP)
-	$(BIN)/python -m uav_vs.demo $(if $(BAG),--bag $(BAG)) $(if $(AUTOPILOT),--autopilot $(AUTOPILOT))
+	$(BIN)/python -m uav_vs.demo $(if $(BAG),--bag $(BAG)) $(if $(AUTOPILOT),--autopilot $(AUTOPILOT)) $(if $(SITL),--sitl $(SITL)) $(if $(SENSORS),--sensors $(SENSORS))
 
 clean:
-	rm -rf $(VENV) build install log *.egg-info bench-results.jsonl demo-output
+	rm -rf $(VENV) $(UBUNTU_VENV) build install log *.egg-info bench-results.jsonl demo-output

@@ -9,6 +9,7 @@ PACKAGE = 'uav_vs'
 EXECUTABLES = {
     'camshift_node': 'uav_vs.nodes.camshift_node:main',
     'trinocular_pose_node': 'uav_vs.nodes.trinocular_pose_node:main',
+    'ground_station': 'uav_vs.nodes.ground_station:main',
     'mavlink_relay_node': 'uav_vs.nodes.mavlink_relay_node:main',
     'sim_vehicle': 'uav_vs.sim.mavlink_vehicle:main',
     'make_ground_bag': 'uav_vs.sim.ground_bag:main',
@@ -19,12 +20,15 @@ EXECUTABLES = {
     'bag_play': 'uav_vs.nodes.bag_player:main',
     'bag_record': 'uav_vs.nodes.bag_recorder:main',
     'sim_world': 'uav_vs.nodes.sim_world_node:main',
+    'frames_node': 'uav_vs.nodes.frames_node:main',
+    'uav_vs_cmd': 'uav_vs.nodes.flight_cmd:main',
 }
 
 DATA_FILES = [
     ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
     ('share/' + PACKAGE, ['package.xml']),
     ('share/' + PACKAGE + '/config', sorted(glob('config/*'))),
+    ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
 ]
 
 if __name__ == '__main__':

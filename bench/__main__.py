@@ -12,7 +12,9 @@ SUITES = {
     'fuzzy': ['fuzzy'],
     'mavlink': ['mavlink', 'mavlink_relay'],
     'bags': ['bags'],
+    'convert': ['convert'],
     'graph': ['graph_latency'],
+    'sim': ['camera_effects'],
 }
 
 

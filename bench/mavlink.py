@@ -5,6 +5,7 @@ packing, send) until the SET_POSITION_TARGET_LOCAL_NED datagram is read at the v
 socket; reference: pymavlink's raw set_position_target_local_ned_send on the same socket.
 `mavlink/command_rate`: back-to-back calls, all counted at the receiver.
 """
+import math
 import socket
 import threading
 import time
@@ -70,7 +71,8 @@ def main() -> None:
     vehicle = Vehicle()
     vehicle.thread.start()
     vehicle.sock.settimeout(5.0)
-    session = Session(SessionConfig(connection=f'udpout:127.0.0.1:{vehicle.port}', rates={})).start()
+    session = Session(SessionConfig(connection=f'udpout:127.0.0.1:{vehicle.port}', rates={},
+                                    max_send_rate=math.inf)).start()   # every call sent
     raw = open_connection(f'udpout:127.0.0.1:{vehicle.port}')
     try:
         _, vehicle.peer = vehicle.sock.recvfrom(512)   # the session's heartbeat: where it is

@@ -1,6 +1,8 @@
 """Shared fixtures: third-party data and an isolated ROS domain per test process."""
 import fcntl
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -42,6 +44,44 @@ def shared_data() -> Path:
             pytest.fail(HOW_TO_GET)
         pytest.skip(HOW_TO_GET)
     return path
+
+
+ROS2_WHEELS = REPO.parent / 'shared' / 'wheels' / 'ros2-jazzy-cli'
+# `ros2 ...` run from the wheels installed by the ros2_env fixture.
+ROS2 = [sys.executable, '-c', 'import sys; from ros2cli.cli import main; sys.exit(main())']
+
+
+@pytest.fixture(scope='session')
+def ros2_env(tmp_path_factory) -> dict[str, str]:
+    """An environment in which ROS2 (the real `ros2` command line and launch) runs: the
+    shared wheels installed into a temporary folder on PYTHONPATH; their PyPI
+    dependencies are in requirements-tools.txt. CI must have them, elsewhere the test skips."""
+    wheels = sorted(ROS2_WHEELS.glob('*.whl'))
+    if not wheels:
+        reason = (f'ROS 2 command line wheels not found in {ROS2_WHEELS} (a full ROS 2 '
+                  f'Jazzy install has them as ros2cli, ros2launch, ...)')
+        if os.environ.get('CI'):
+            pytest.fail(reason)
+        pytest.skip(reason)
+    site = tmp_path_factory.mktemp('ros2_cli')
+    subprocess.run([sys.executable, '-m', 'pip', 'install', '-q', '--no-deps',
+                    '--target', str(site), *map(str, wheels)], check=True)
+    return dict(os.environ, PYTHONPATH=str(site), AMENT_PREFIX_PATH=sys.prefix,
+                ROS_LOG_DIR=str(site / 'log'))
+
+
+@pytest.fixture(scope='session')
+def ros2_cli(ros2_env):
+    """`ros2 ARGS` from the shared command-line wheels, retried while the CLI's fresh node
+    has not found the graph yet."""
+    def ros2(*args: str) -> subprocess.CompletedProcess:
+        for _ in range(5):      # a fresh CLI node may not have discovered the graph yet
+            run = subprocess.run([*ROS2, *args], env=ros2_env, capture_output=True, text=True,
+                                 timeout=60)
+            if 'Node not found' not in run.stdout + run.stderr:
+                return run
+        return run
+    return ros2
 
 
 @pytest.fixture

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from uav_vs.vision.camera import CalibrationError, Camera, look_at
+from uav_vs.vision.camera import CalibrationError, Camera, look_at, undistort_points
 from uav_vs.vision.ground_config import (default_config_path, load_ground_config,
                                          read_params_file)
 
@@ -146,3 +146,82 @@ def test_hue_range_may_wrap_through_zero():
     flat['landmarks.red.hue'] = [170, 10]
     cfg = load_ground_config(flat)
     assert cfg.hue[0].tolist() == [170, 10]
+
+
+# One set of coefficients per OpenCV distortion model (k1 k2 p1 p2 [k3 [k4 k5 k6
+# [s1 s2 s3 s4 [tau_x tau_y]]]]), each a lens that distorts the image edge by pixels.
+MODELS = {
+    0: [],
+    4: [-0.11, 0.03, 0.0008, -0.0004],
+    5: [-0.11, 0.03, 0.0008, -0.0004, -0.006],
+    8: [0.15, -0.04, 0.0008, -0.0004, 0.002, 0.27, -0.05, 0.01],
+    12: [0.15, -0.04, 0.0008, -0.0004, 0.002, 0.27, -0.05, 0.01, 0.002, -0.001, 0.0015, 0.0005],
+    14: [0.15, -0.04, 0.0008, -0.0004, 0.002, 0.27, -0.05, 0.01, 0.002, -0.001, 0.0015, 0.0005,
+         0.01, -0.015],
+}
+
+
+@pytest.mark.parametrize('n', sorted(MODELS))
+def test_every_opencv_distortion_model_round_trips_against_opencv(n):
+    """Camera from K and D alone: pixels as cv2.projectPoints gives them, and back to the
+    true normalised coordinates (and to what cv2.undistortPoints gives)."""
+    D = np.array(MODELS[n])
+    R, t = look_at(np.array([0.3, -0.2, -1.0]), np.array([0.0, 0.0, 5.0]), up=np.array([0, -1.0, 0]))
+    cam = Camera(K=K, D=D, R=R, t=t)
+    rng = np.random.default_rng(n)
+    X = rng.uniform([-2.5, -2.0, 4.0], [2.5, 2.0, 7.0], (300, 3))
+    px = cam.project(X)
+    ref, _ = cv2.projectPoints(X, cv2.Rodrigues(R)[0], t, K, D if n else None)
+    np.testing.assert_allclose(px, ref.reshape(-1, 2), atol=1e-9)
+    Xc = cam.to_camera(X)
+    ideal = Xc[:, :2] / Xc[:, 2:]
+    np.testing.assert_allclose(cam.normalize(px), ideal, atol=1e-9)
+    undistorted = undistort_points(px.reshape(-1, 1, 2), K, D)     # cv2, on pixels
+    np.testing.assert_allclose(cam.normalize(px), undistorted.reshape(-1, 2), atol=1e-9)
+    if n:
+        assert np.abs(px - (ideal @ K[:2, :2].T + K[:2, 2])).max() > 2   # the lens does act
+    info = cam.camera_info_fields()
+    assert info['distortion_model'] == ('plumb_bob' if n <= 5 else 'rational_polynomial')
+    assert info['d'] == (D.tolist() + [0.0] * (5 - n) if n <= 5 else D.tolist())
+
+
+def test_camera_from_K_alone_is_the_pinhole_at_the_origin_with_skew():
+    """x_c = X_w (R = I, t = 0) and u = fx x + s y + cx, v = fy y + cy (eq 15)."""
+    Ks = K.copy()
+    Ks[0, 1] = 3.0
+    cam = Camera(K=Ks)
+    X = np.array([[0.4, -0.3, 2.0], [-1.0, 0.5, 4.0]])
+    x, y = X[:, 0] / X[:, 2], X[:, 1] / X[:, 2]
+    expected = np.column_stack([500 * x + 3 * y + 320, 400 * y + 240])
+    np.testing.assert_allclose(cam.project(X), expected, atol=1e-12)
+    np.testing.assert_allclose(cam.normalize(expected), np.column_stack([x, y]), atol=1e-12)
+    distorted = Camera(K=Ks, D=MODELS[5])          # skew also honoured through the lens model
+    np.testing.assert_allclose(distorted.normalize(distorted.project(X)), np.column_stack([x, y]),
+                               atol=1e-9)
+    assert cam.width is None and cam.camera_info_fields()['width'] == 0
+
+
+@pytest.mark.parametrize('D', [[0.1], [0.1, 0.0, 0.0], [0.0] * 6, [0.0] * 9, [0.0] * 15])
+def test_distortion_of_a_length_opencv_has_no_model_for_is_refused(D):
+    with pytest.raises(CalibrationError) as err:
+        Camera(K=K, D=D)
+    msg = str(err.value)
+    assert msg == (f"D: expected 0, 4, 5, 8, 12 or 14 distortion coefficients (OpenCV's models), "
+                   f'got {len(D)}')
+    with pytest.raises(CalibrationError, match=r'^cameras\.c\.D: expected 0, 4, 5'):
+        Camera.from_params('c', params(D=D), prefix='cameras.c.')
+
+
+@pytest.mark.parametrize('kwargs, key', [({}, 'K'), ({'K': np.eye(2)}, 'K'),
+                                         ({'K': -K}, 'K'), ({'K': K, 't': [0.0, 1.0]}, 't'),
+                                         ({'K': K, 'D': [np.nan] * 4}, 'D')])
+def test_camera_fields_are_checked_in_one_line(kwargs, key):
+    with pytest.raises(CalibrationError) as err:
+        Camera(**kwargs)
+    assert str(err.value).startswith(f'{key}:') and '\n' not in str(err.value)
+
+
+@pytest.mark.parametrize('n', [0, 4, 8, 14])
+def test_from_params_takes_every_opencv_model(n):
+    cam = Camera.from_params('c', params(D=MODELS[n]))
+    assert cam.D.tolist() == MODELS[n]

@@ -1,16 +1,16 @@
 """Closed loop (chapter section 5): the vehicle flies on vision alone, judged against truth.
 
 The whole graph runs as separate processes around the simulated vehicle
-(uav_vs.scenario.fly): sim_world, mavlink_relay_node, three camshift_node and the
+(uav_vs.flight.scenario.fly): sim_world, mavlink_relay_node, three camshift_node and the
 trinocular_pose_node, homography_pose_node and fuzzy_controller_node. The vehicle takes
 off, holds, flies to a setpoint on the ground station's pose and lands on a pad on the
 onboard pose. Every assertion is against the simulator's truth (`truth/pose`), and the
 ROS graph itself is asked what the controller flew on.
 """
 from uav_vs.bag.reader import Bag
-from uav_vs.flight_replay import replay_flight
-from uav_vs.flight_report import FlightReport
-from uav_vs.scenario import Landing, Scenario, Setpoint, fly
+from uav_vs.flight.replay import replay_flight
+from uav_vs.flight.report import FlightReport
+from uav_vs.flight.scenario import Landing, Scenario, Setpoint, fly
 
 SCENARIO = Scenario('test', 1.3, Setpoint((0.0, 0.0, 1.3), hold=1.0),
                     (Setpoint((0.7, -0.5, 1.5), hold=1.5),),

@@ -2,10 +2,11 @@
 import cv2
 import numpy as np
 import pytest
-from sensor_msgs.msg import CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from uav_vs.ros import convert as cv
+from uav_vs.vision.camera import Camera
 
 RNG = np.random.default_rng(7)
 BGR = RNG.integers(0, 256, (48, 64, 3), dtype=np.uint8)
@@ -93,3 +94,29 @@ def test_serialized_image_is_read_in_place_as_rclpy_reads_it(encoding, channels,
     for cut in (3, 20, len(raw) - 1):          # truncated anywhere: a clear error
         with pytest.raises(cv.MessageError, match='malformed serialized image'):
             cv.image_from_cdr(raw[:cut])
+
+
+@pytest.mark.parametrize('n', [0, 4, 5, 8, 12, 14])
+def test_camera_from_camera_info_of_every_opencv_model(n):
+    """Camera -> CameraInfo -> Camera projects as the original (cv2.projectPoints' model)."""
+    K = np.array([[510.0, 0.0, 318.0], [0.0, 505.0, 242.0], [0.0, 0.0, 1.0]])
+    D = np.array([0.12, -0.03, 0.0006, -0.0003, 0.001, 0.25, -0.04, 0.008,
+                  0.001, -0.0005, 0.0008, 0.0002, 0.01, -0.02])[:n]
+    cam = Camera('c', 640, 480, K, D)
+    info = cv.camera_info(cam.camera_info_fields(), Header(frame_id='c_optical'))
+    back = cv.camera_from_info(info)
+    X = np.random.default_rng(n).uniform([-1, -1, 2], [1, 1, 4], (50, 3))
+    ref, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), K, D if n else None)
+    np.testing.assert_allclose(back.project(X), ref.reshape(-1, 2), atol=1e-9)
+    assert (back.width, back.height, back.frame_id) == (640, 480, 'c_optical')
+
+
+def test_camera_info_the_camera_model_cannot_use_is_refused():
+    k = [500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0]
+    with pytest.raises(cv.MessageError, match="^camera_info: distortion model 'equidistant'"):
+        cv.camera_from_info(CameraInfo(k=k, d=[0.1, 0.0, 0.0, 0.0], distortion_model='equidistant'))
+    with pytest.raises(cv.MessageError, match=r'^camera_info: D: expected 0, 4, 5, 8, 12 or 14'):
+        cv.camera_from_info(CameraInfo(k=k, d=[0.1] * 6, distortion_model='plumb_bob'))
+    with pytest.raises(cv.MessageError, match=r'^camera_info: K: expected'):
+        cv.camera_from_info(CameraInfo(distortion_model='plumb_bob'))     # uncalibrated: K = 0
+    assert cv.camera_from_info(CameraInfo(k=k)).width is None              # size 0: unknown

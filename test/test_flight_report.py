@@ -6,7 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from uav_vs.flight_report import (CommandTrack, FlightLog, FlightReport, PoseTrack,
+from uav_vs import graph
+from uav_vs.flight.report import (CommandTrack, FlightLog, FlightReport, PoseTrack,
                                   SetpointEvent, command_latencies)
 
 MS = 1_000_000
@@ -77,3 +78,18 @@ def test_save_and_load_keep_everything(tmp_path):
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=name)
     assert back.setpoints == log.setpoints and back.takeoff_ns == log.takeoff_ns
     assert FlightReport.from_log(back) == FlightReport.from_log(log)
+
+
+def test_a_process_that_failed_is_reported_with_the_end_of_its_log(tmp_path):
+    procs = {'ok': graph.start('python', [], tmp_path, 'ok', args=['-c', 'print("fine")']),
+             'bad': graph.start('python', [], tmp_path, 'bad', args=[
+                 '-c', 'print("\\n".join(map(str, range(40)))); raise SystemExit("why: 39")'])}
+    for proc in procs.values():
+        proc.wait(30)
+    log = make_log()
+    log.exit_codes = dict(zip(procs, graph.stop(list(procs.values()))))
+    log.failed_logs = graph.failed_logs(procs, lines=3)
+    summary = FlightReport.from_log(log).summary().splitlines()
+    assert log.exit_codes == {'ok': 0, 'bad': 1}
+    assert summary[-5:] == ["exit status other than 0 when stopped: {'bad': 1}",
+                            f'  {tmp_path / "bad.log"}:', '  38', '  39', '  why: 39']

@@ -122,3 +122,40 @@ def test_pose_covariance():
     assert ned[1, 2] == -0.25
     assert ned[5, 5] == 0.01 and ned[3, 4] == -0.002
     assert np.allclose(ned, ned.T) and np.allclose(np.linalg.eigvalsh(ned), np.linalg.eigvalsh(cov))
+
+
+def test_covariance_from_mavlinks_upper_triangle():
+    # MAVLink: the first six entries are row 0 (columns 0..5), the next five row 1 (1..5), ...
+    upper = np.arange(1.0, 22.0)
+    cov = frames.covariance_from_upper(upper)
+    k = 0
+    for row in range(6):
+        for col in range(row, 6):
+            assert cov[row, col] == cov[col, row] == upper[k]
+            k += 1
+    assert frames.covariance_from_upper([np.nan] + [1.0] * 20) is None     # unknown
+    partial = [np.nan] * 21
+    partial[0], partial[6], partial[20] = 0.5, 0.25, 0.125              # PX4: diagonals only
+    assert np.array_equal(frames.covariance_from_upper(partial),
+                          np.diag([0.5, 0.25, 0.0, 0.0, 0.0, 0.125]))
+
+
+@pytest.mark.parametrize('yaw_enu, expected', [
+    (np.pi / 2, [1.0, 2.0, 3.0]),     # facing north: forward is north, left is west
+    (0.0, [2.0, 1.0, 3.0]),           # facing east: forward is east, left is north
+])
+def test_world_velocity_covariance_seen_in_the_body(yaw_enu, expected):
+    ned = np.diag([1.0, 2.0, 3.0])    # variances north, east, down
+    q = Rotation.from_euler('z', yaw_enu).as_quat()
+    flu = frames.velocity_covariance_to_flu(ned, 'local_ned', q)
+    assert np.allclose(flu, np.diag(expected))
+    assert np.allclose(frames.velocity_covariance_to_flu(ned, 'body_frd', q), ned)
+
+
+def test_velocity_covariance_against_scipy_at_any_attitude():
+    a = RNG.normal(size=(3, 3))
+    ned = a @ a.T
+    q = Rotation.random(random_state=3).as_quat()               # base_link FLU in world ENU
+    r_flu_ned = Rotation.from_quat(q).as_matrix().T @ frames.R_ENU_NED
+    assert np.allclose(frames.velocity_covariance_to_flu(ned, 'local_ned', q),
+                       r_flu_ned @ ned @ r_flu_ned.T)

@@ -4,16 +4,18 @@ Truth: the frame geometry worked out by hand (a vehicle facing north with its se
 to the east must be commanded to its right in FLU; a target left of the image centre
 must turn the vehicle left), and the node's documented fail-safe rules (zero command
 from the first cycle after the measurement is older than the timeout, when disabled or
-fed non-finite poses).
+fed non-finite poses, or poses whose stamps the node's clock cannot believe).
 """
 import math
 import subprocess
 import threading
 import time
 
+import numpy as np
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point32, Polygon, PolygonStamped, PoseStamped, TwistStamped
+from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header
 from std_srvs.srv import SetBool
 
@@ -46,18 +48,19 @@ class Probe:
         self.pose = node.create_publisher(PoseStamped, '/ground/pose', 10)
         self.setpoint = node.create_publisher(PoseStamped, '/setpoint', 10)
         self.target = node.create_publisher(PolygonStamped, '/onboard/target', 10)
-        self.enable = node.create_client(SetBool, NODE + '/enable')
+        self.enable = node.create_client(SetBool, '/controller/enable')
         self.stop = threading.Event()
         self.last_sent = math.nan           # wall time (the node's clock) of the last measurement sent
+        self.sent_stamps: set[int] = set()  # stamps (ns) of every measurement sent
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         for s in msg.status:
             if s.name == NODE:
                 self.diag = {'message': s.message, **{kv.key: kv.value for kv in s.values}}
 
-    def publish_poses(self, position, quaternion, rate=20.0, frame='world'):
+    def publish_poses(self, position, quaternion, rate=20.0, frame='world', stamp=time.time_ns):
         return self._publish_until_stopped(
-            self.pose, lambda header: pose_to_msg(position, quaternion, header), rate, frame)
+            self.pose, lambda header: pose_to_msg(position, quaternion, header), rate, frame, stamp)
 
     def publish_targets(self, centre_x, rate=20.0, half=40.0, y=240.0):
         """target_tracker_node's message: four corners, then the centre as the last point."""
@@ -68,17 +71,16 @@ class Probe:
                 points=[*points, Point32(x=centre_x(), y=y, z=0.0)]))
         return self._publish_until_stopped(self.target, target, rate, 'onboard_camera_optical')
 
-    def _publish_until_stopped(self, publisher, make, rate, frame):
-        """Publish make(header) at `rate`, stamped 1 s + k / rate, until `stop` is set."""
+    def _publish_until_stopped(self, publisher, make, rate, frame, stamp=time.time_ns):
+        """Publish make(header) at `rate`, stamped stamp() (ns; now by default), until `stop`
+        is set."""
         def loop():
-            k = 0
             while not self.stop.is_set():
-                header = Header(stamp=ns_to_stamp(1_000_000_000 + int(k * 1e9 / rate)),
-                                frame_id=frame)
-                msg = make(header)
+                ns = stamp()
+                msg = make(Header(stamp=ns_to_stamp(ns), frame_id=frame))
+                self.sent_stamps.add(ns)
                 self.last_sent = time.time()
                 publisher.publish(msg)
-                k += 1
                 time.sleep(1.0 / rate)
         thread = threading.Thread(target=loop, daemon=True)
         thread.start()
@@ -93,6 +95,11 @@ class Probe:
 
     def last_cmd(self):
         return msg_to_twist(self.cmds[-1][1]) if self.cmds else None
+
+    def commanding(self, check) -> bool:
+        """Wait until the last command satisfies check(linear, angular). The diagnostics
+        and the commands are separate topics: either may arrive first."""
+        return wait_for(lambda: self.cmds and check(*self.last_cmd()), 5)
 
 
 def is_zero(msg: TwistStamped) -> bool:
@@ -136,14 +143,13 @@ def test_body_commands_then_zero_when_stale_and_when_disabled(ros_node, processe
     poses = probe.publish_poses([0.0, 0.0, 1.0], NORTH)
     # Setpoint 1.5 m east of a vehicle facing north: to its right (-y FLU), turn right.
     assert wait_for(lambda: probe.diag.get('message') == 'commanding', 10), probe.diag
-    assert wait_for(lambda: probe.last_cmd()[0][1] < -0.3, 5)
+    assert probe.commanding(lambda linear, _: linear[1] < -0.3), probe.last_cmd()
     linear, angular = probe.last_cmd()
     assert abs(linear[0]) < 1e-6 and abs(linear[2]) < 1e-6 and angular[2] < 0
     assert math.hypot(linear[0], linear[1]) <= 1.0 + 1e-9 and abs(angular[2]) <= 0.8 + 1e-9
     assert probe.cmds[-1][1].header.frame_id == 'base_link'
-    # A command computed from a pose carries that pose's stamp (1 s + k / 20 Hz).
-    stamp = stamp_to_ns(probe.cmds[-1][1].header.stamp) - 1_000_000_000
-    assert 0 <= stamp < 600e9 and stamp % 50_000_000 == 0, stamp
+    # A command computed from a pose carries that pose's stamp.
+    assert stamp_to_ns(probe.cmds[-1][1].header.stamp) in probe.sent_stamps
 
     last_sent, mark = probe.stop_publishing(poses)
     assert_zero_from_one_cycle_after_timeout(probe, last_sent, mark)
@@ -183,9 +189,8 @@ def test_tracking_mode_turns_towards_the_target_then_zero_when_stale(ros_node, p
         assert linear.tolist() == [0.0, 0.0, 0.0] and angular[:2].tolist() == [0.0, 0.0]
         assert abs(angular[2]) <= 0.6 + 1e-9                   # fuzzy.tracking.limit
         assert m.header.frame_id == 'base_link'
-    # Commands follow the targets, stamped with their stamps (1 s + k / 20 Hz).
-    stamp = stamp_to_ns(probe.cmds[-1][1].header.stamp) - 1_000_000_000
-    assert 0 <= stamp < 600e9 and stamp % 50_000_000 == 0, stamp
+    # Commands follow the targets, stamped with their stamps.
+    assert stamp_to_ns(probe.cmds[-1][1].header.stamp) in probe.sent_stamps
 
     last_sent, mark = probe.stop_publishing(targets)
     assert_zero_from_one_cycle_after_timeout(probe, last_sent, mark)
@@ -228,6 +233,111 @@ def test_non_finite_and_wrong_frame_poses_are_counted_and_never_commanded(ros_no
                for part in msg_to_twist(m) for v in part)
     assert proc.poll() is None
     assert 'expected \'world\'' in processes.log('fuzzy')
+
+
+def about_z(yaw_deg: float) -> list[float]:
+    half = math.radians(yaw_deg) / 2
+    return [0.0, 0.0, math.sin(half), math.cos(half)]
+
+
+def test_old_unstamped_and_future_poses_are_dropped_and_command_zero(ros_node, processes):
+    # Streams of poses stamped 10 s behind the node's clock, stamped 0, and 5 s ahead of
+    # it: each is counted and dropped, commands stay zero and the diagnostics say why;
+    # fresh poses then command (the setpoint is 1 m east).
+    probe = Probe(ros_node)
+    proc = start(processes, 'controller.enabled:=true')
+    assert wait_for(lambda: probe.setpoint.get_subscription_count() > 0, 30)
+    probe.setpoint.publish(pose_to_msg([1.0, 0.0, 1.0], [0, 0, 0, 1.0], Header(frame_id='world')))
+    assert wait_for(lambda: probe.diag.get('message') == 'no measurement yet: zero command', 10)
+    for stamp, why, count in ((lambda: time.time_ns() - 10_000_000_000,
+                               'pose stamp 10.0 s old (> 0.50 s)', 'old_stamps'),
+                              (lambda: 0, 'pose unstamped (stamp 0)', 'old_stamps'),
+                              (lambda: time.time_ns() + 5_000_000_000,
+                               'future stamp (pose ', 'future_stamps')):
+        before = int(probe.diag.get(count, 0))
+        poses = probe.publish_poses([0.0, 0.0, 1.0], [0, 0, 0, 1.0], stamp=stamp)
+        assert wait_for(lambda: probe.diag.get('message', '').startswith(why)
+                        and int(probe.diag[count]) > before + 3, 5), probe.diag
+        probe.stop_publishing(poses)
+    assert probe.diag['message'].endswith('s ahead of the clock): zero command'), probe.diag
+    assert probe.diag['malformed'] == '0' and probe.diag['measurements'] == '0'
+    assert len(probe.cmds) > 10 and all(is_zero(m) for _, m in probe.cmds)
+    assert 'dropped' in processes.log('fuzzy')
+    poses = probe.publish_poses([0.0, 0.0, 1.0], [0, 0, 0, 1.0])
+    assert wait_for(lambda: probe.diag.get('message') == 'commanding', 5), probe.diag
+    assert probe.commanding(lambda linear, _: linear[0] > 0.1), probe.last_cmd()
+    probe.stop_publishing(poses)
+    assert proc.poll() is None
+
+
+def test_a_scaled_quaternion_commands_as_the_unit_one_and_a_zero_one_is_malformed(
+        ros_node, processes):
+    # Pose yaw 30 deg, setpoint yaw 60 deg: turn left. The pose's quaternion at twice
+    # unit length names the same rotation and gives the same command (read as a unit
+    # one it would be yaw 77 deg: a right turn). A zero quaternion is no rotation.
+    probe = Probe(ros_node)
+    proc = start(processes, 'controller.enabled:=true')
+    assert wait_for(lambda: probe.setpoint.get_subscription_count() > 0, 30)
+    probe.setpoint.publish(pose_to_msg([0.5, 0.0, 1.0], about_z(60), Header(frame_id='world')))
+    commands = []
+    for scale in (1.0, 2.0):
+        mark = len(probe.cmds)
+        poses = probe.publish_poses([0.0, 0.0, 1.0], [scale * v for v in about_z(30)])
+        assert wait_for(lambda: sum(not is_zero(m) for _, m in probe.cmds[mark:]) >= 5, 10), \
+            probe.diag
+        commands.append(probe.last_cmd())
+        probe.stop_publishing(poses)
+    (linear, angular), (linear2, angular2) = commands
+    assert linear[0] > 0.1 and angular[2] > 0.1
+    np.testing.assert_allclose(linear2, linear, atol=1e-9)
+    np.testing.assert_allclose(angular2, angular, atol=1e-9)
+    probe.pose.publish(pose_to_msg([0.0, 0.0, 1.0], [0, 0, 0, 0.0], Header(frame_id='world')))
+    probe.setpoint.publish(pose_to_msg([0.0, 0.0, 1.0], [0, 0, 0, 0.0], Header(frame_id='world')))
+    assert wait_for(lambda: probe.diag.get('malformed') == '2', 10), probe.diag
+    assert 'setpoint: quaternion (0, 0, 0, 0) is no rotation' in processes.log('fuzzy')
+    assert proc.poll() is None
+
+
+def test_with_sim_time_a_stopped_clock_gives_zero_commands_that_keep_coming(ros_node, processes):
+    # /clock at 100 Hz from 1000 s, poses stamped with it: commands. /clock stops while
+    # the poses go on (stamped with the time it stopped at): zero commands, 'clock
+    # stopped'. Then the poses stop too: zero commands go on at the node's rate, though
+    # its ROS time stands still.
+    probe = Probe(ros_node)
+    clock = ros_node.create_publisher(Clock, '/clock', 10)
+    sim_ns = [1_000_000_000_000]
+    ticking = threading.Event()
+    ticking.set()
+
+    def tick():
+        while ticking.is_set():
+            sim_ns[0] += 10_000_000
+            clock.publish(Clock(clock=ns_to_stamp(sim_ns[0])))
+            time.sleep(0.01)
+    ticker = threading.Thread(target=tick, daemon=True)
+    ticker.start()
+    try:
+        proc = start(processes, 'controller.enabled:=true', 'use_sim_time:=true')
+        assert wait_for(lambda: probe.setpoint.get_subscription_count() > 0, 30)
+        probe.setpoint.publish(pose_to_msg([1.0, 0.0, 1.0], [0, 0, 0, 1.0],
+                                           Header(frame_id='world')))
+        poses = probe.publish_poses([0.0, 0.0, 1.0], [0, 0, 0, 1.0], stamp=lambda: sim_ns[0])
+        assert wait_for(lambda: probe.diag.get('message') == 'commanding', 10), probe.diag
+        assert probe.commanding(lambda linear, _: linear[0] > 0.1), probe.last_cmd()
+        assert stamp_to_ns(probe.cmds[-1][1].header.stamp) in probe.sent_stamps
+    finally:
+        ticking.clear()
+        ticker.join()
+    stopped_at = time.monotonic()
+    assert wait_for(lambda: probe.diag.get('message', '').startswith('clock stopped'), 5), \
+        probe.diag
+    zero_from = next(k for k, (t, m) in enumerate(probe.cmds) if t > stopped_at and is_zero(m))
+    probe.stop_publishing(poses)
+    mark = len(probe.cmds)
+    assert wait_for(lambda: len(probe.cmds) > mark + 10, 5)         # 50 Hz: 0.2 s
+    assert all(is_zero(m) for _, m in probe.cmds[zero_from:]), \
+        [msg_to_twist(m) for _, m in probe.cmds[zero_from:]]
+    assert proc.poll() is None
 
 
 def _broken(tmp_path, edit) -> str:

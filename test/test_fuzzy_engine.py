@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from uav_vs.control.controllers import PoseController, TrackingController, load_config
-from uav_vs.control.fuzzy import FuzzyBank, FuzzySystem, gaussian, partition, trapezoid, triangle
+from uav_vs.control.fuzzy import (FuzzyBank, FuzzySystem, _einsum_vecdot, gaussian, partition,
+                                  trapezoid, triangle)
 from uav_vs.control.fuzzy_reference import skfuzzy_evaluate, skfuzzy_evaluate_many, to_skfuzzy
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'fuzzy_controller.yaml'
@@ -120,6 +121,11 @@ def test_skfuzzy_array_inputs_equal_scalar_runs():
     assert skfuzzy_outputs(system, x).tolist() == scalar
 
 
+def trapezoid_rule(y, u):
+    """Integral of samples y at points u, linear in between."""
+    return np.sum(0.5 * (y[1:] + y[:-1]) * np.diff(u))
+
+
 def brute_force(system, x, points=200001, what='centroid'):
     """Independent Mamdani on a very fine grid, straight from the definitions."""
     u = np.linspace(system.output.lo, system.output.hi, points)
@@ -138,7 +144,7 @@ def brute_force(system, x, points=200001, what='centroid'):
     if what == 'bisector':
         cum = np.concatenate([[0], np.cumsum(0.5 * (agg[1:] + agg[:-1]) * np.diff(u))])
         return float(np.interp(cum[-1] / 2, cum, u))
-    return float(np.trapezoid(u * agg, u) / np.trapezoid(agg, u))
+    return float(trapezoid_rule(u * agg, u) / trapezoid_rule(agg, u))
 
 
 def test_bisector_matches_skfuzzy_and_brute_force():
@@ -185,6 +191,14 @@ def test_mean_of_maxima_and_height_analytic():
     # A single unclipped triangle: its apex.
     y, _ = FuzzySystem.from_config(pd_config(defuzzification='mom')).evaluate([0.2, 0.0])
     assert y == pytest.approx(0.3, abs=1e-12)
+
+
+@pytest.mark.parametrize('shapes, axis', [(((138, 4), (2, 138, 4)), -2), (((4, 7), (7,)), -1)])
+def test_numpy1_vecdot_is_the_sum_of_products(shapes, axis):
+    rng = np.random.default_rng(3)
+    x1, x2 = (rng.normal(size=s) for s in shapes)
+    expected = np.sum(x1 * x2, axis=axis)
+    assert np.allclose(_einsum_vecdot(x1, x2, axis=axis), expected, rtol=1e-12, atol=1e-12)
 
 
 def test_membership_shapes():

@@ -5,19 +5,21 @@ the sample bag, or landmark pixels projected analytically through the calibratio
 """
 import math
 import subprocess
+import threading
+import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import yaml
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PolygonStamped, PoseStamped
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
 from conftest import REPO, wait_for
-from uav_vs.ground_replay import replay_ground_bag
+from uav_vs.flight.ground_replay import DEFAULT_LAYOUT, replay_ground_bag
 from uav_vs.graph import executable
 from uav_vs.ros.convert import (bgr_to_image, msg_to_pose, ns_to_stamp, points_to_polygon,
                                 polygon_to_array, yaw_of)
@@ -26,21 +28,48 @@ from uav_vs.vision.ground_config import load_ground_config, read_params_file
 CONFIG = REPO / 'config' / 'ground_trinocular.yaml'
 BAG = REPO / 'bags' / 'ground_trinocular'
 CAMERAS = ['cam1', 'cam2', 'cam3']
+OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+
+def _replay(tmp_path: Path, layout: str):
+    """The sample bag through the ground station in `layout`; the images go reliably
+    (`camshift.image_qos: reliable`, as for any bag replay)."""
+    report = replay_ground_bag(BAG, CONFIG, tmp_path / layout, CAMERAS, layout=layout,
+                               extra_args=['-p', 'camshift.image_qos:=reliable'])
+    print(layout, report.summary())
+    return report
 
 
 def test_sample_bag_through_the_graph_meets_accuracy(tmp_path):
     """Every synchronised frame set gives a pose: <= 2 cm position, <= 1 deg yaw RMSE.
-    The images go reliably (`camshift.image_qos: reliable`, as for any bag replay); on a
-    loaded machine the pose node may still give up on a set whose last camera is later
-    than `trinocular.max_wait`, hence 95 %."""
-    report = replay_ground_bag(BAG, CONFIG, tmp_path, CAMERAS,
-                               extra_args=['-p', 'camshift.image_qos:=reliable'])
-    print(report.summary())
+    On a loaded machine the pose node may still give up on a set whose last camera is
+    later than `trinocular.max_wait`, hence 95 %. Every process of the default layout
+    exits 0."""
+    report = _replay(tmp_path, DEFAULT_LAYOUT)
     assert report.frame_sets >= 50
     assert report.poses >= 0.95 * report.frame_sets
     assert report.position_rmse_m <= 0.02
     assert report.yaw_rmse_deg <= 1.0
-    assert report.return_codes == [0] * 4
+    assert report.return_codes == [0] * {'one_process': 1, 'processes': 4}[DEFAULT_LAYOUT]
+
+
+def test_one_process_station_gives_the_poses_of_the_separate_processes(tmp_path):
+    """The same bag through both layouts: the same frame sets give a pose, most of them
+    the very same pose (the same images, the same detectors); a few differ by less than
+    the accuracy (a landmark missed in the first frames, a frame set released without a
+    late camera: `trinocular.max_wait`). Both are near the simulator's truth."""
+    apart, together = _replay(tmp_path, 'processes'), _replay(tmp_path, 'one_process')
+    common = sorted(set(apart.messages) & set(together.messages))
+    assert len(common) >= 0.9 * apart.frame_sets
+    shift_m, turn_deg = [], []
+    for stamp in common:
+        (p1, q1), (p2, q2) = (msg_to_pose(r.messages[stamp]) for r in (apart, together))
+        shift_m.append(np.linalg.norm(p1 - p2))
+        turn_deg.append(math.degrees(2 * math.acos(min(1.0, abs(float(np.dot(q1, q2)))))))
+    print(f'difference median {np.median(shift_m) * 1e3:.4f} mm, max {max(shift_m) * 1e3:.3f} mm')
+    assert np.median(shift_m) <= 1e-4 and np.median(turn_deg) <= 0.01
+    assert max(shift_m) <= 0.02 and max(turn_deg) <= 1.0
+    assert together.position_rmse_m <= 0.02 and together.yaw_rmse_deg <= 1.0
 
 
 def _broken_config(tmp_path: Path, path: list[str], value) -> Path:
@@ -97,6 +126,21 @@ def test_params_file_rcl_would_refuse_stops_pose_node_with_one_line(tmp_path, k1
     assert run.returncode == 2, run.stderr
     lines = [line for line in (run.stdout + run.stderr).splitlines() if line.strip()]
     assert len(lines) == 1 and 'FATAL' in lines[0] and expected in lines[0], run.stderr
+
+
+@pytest.mark.parametrize('path, value, expected', [
+    (['cameras', 'cam2', 'R'], None, 'cameras.cam2.R: missing'),
+    (['landmarks', 'blue', 'hue'], [100, 300], 'landmarks.blue.hue'),
+])
+def test_bad_parameter_stops_the_one_process_station_with_one_line(tmp_path, path, value,
+                                                                   expected):
+    """A parameter of the pose node or of the camera nodes: one FATAL line, exit 2."""
+    cfg = _broken_config(tmp_path, path, value)
+    run = subprocess.run([executable('ground_station'), '--ros-args', '--params-file',
+                          str(cfg)], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2, run.stderr
+    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
+    assert len(fatal) == 1 and expected in fatal[0], run.stdout + run.stderr
 
 
 def test_bad_landmark_colour_stops_camshift_node(tmp_path):
@@ -161,7 +205,9 @@ def _collect_diagnostics(ros_node, store: dict) -> None:
 def test_malformed_images_are_counted_skipped_and_the_node_goes_on(ros_node, processes):
     proc = processes('camshift_node', ['--params-file', str(CONFIG), '-r', '__ns:=/cam1',
                                        '-p', 'camera:=cam1', '-p', 'camshift.diagnostics_period:=0.2',
-                                       '-p', 'camshift.image_qos:=reliable'], label='cam1')
+                                       '-p', 'camshift.image_qos:=reliable',
+                                       '-p', 'camshift.input_warn_after:=0.3',
+                                       '-p', 'camshift.input_error_after:=1.0'], label='cam1')
     diags: dict = {}
     _collect_diagnostics(ros_node, diags)
     out: list[PolygonStamped] = []
@@ -182,6 +228,10 @@ def test_malformed_images_are_counted_skipped_and_the_node_goes_on(ros_node, pro
     assert polygon_to_array(out[0]).shape == (4, 3)
     log = processes.log('cam1')
     assert 'unsupported encoding' in log and 'expected 640x480' in log
+    assert 'cam1: 4 landmarks (red, green, blue, yellow) in /cam1/image_raw' in log
+    # No image since: the input's silence is in the diagnostics, ERROR past its bound.
+    assert wait_for(lambda: diags['/cam1/camshift_node'].message.startswith('no image for'), 10)
+    assert wait_for(lambda: diags['/cam1/camshift_node'].level == ERROR, 10)
 
 
 def _project_layout(cfg, position, yaw):
@@ -191,16 +241,24 @@ def _project_layout(cfg, position, yaw):
     return [cam.project(world) for cam in cfg.cameras]
 
 
-def test_pose_survives_a_landmark_lost_in_one_camera_and_needs_two_landmarks(ros_node, processes):
+def _trinocular(ros_node, processes, *params: str):
+    """A trinocular_pose_node on CONFIG and `params`; its config, process, the poses and
+    diagnostics it sends, and a landmarks publisher per camera, matched both ways."""
     cfg = load_ground_config(read_params_file(CONFIG))
-    processes('trinocular_pose_node', ['--params-file', str(CONFIG),
-                                       '-p', 'trinocular.diagnostics_period:=0.2'])
+    proc = processes('trinocular_pose_node', ['--params-file', str(CONFIG), *params])
     poses: list[PoseStamped] = []
-    ros_node.create_subscription(PoseStamped, '/ground/pose', poses.append, 10)
+    sub = ros_node.create_subscription(PoseStamped, '/ground/pose', poses.append, 10)
     diags: dict = {}
     _collect_diagnostics(ros_node, diags)
     pubs = [ros_node.create_publisher(PolygonStamped, f'/{c}/landmarks', 10) for c in CAMERAS]
-    assert wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs), 30)
+    assert wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs)
+                    and sub.get_publisher_count() > 0, 30)
+    return cfg, proc, poses, diags, pubs
+
+
+def test_pose_survives_a_landmark_lost_in_one_camera_and_needs_two_landmarks(ros_node, processes):
+    cfg, _, poses, diags, pubs = _trinocular(ros_node, processes,
+                                             '-p', 'trinocular.diagnostics_period:=0.2')
 
     truth_pos, truth_yaw = np.array([0.4, -0.3, 1.2]), 2.5
     pixels = _project_layout(cfg, truth_pos, truth_yaw)
@@ -223,3 +281,47 @@ def test_pose_survives_a_landmark_lost_in_one_camera_and_needs_two_landmarks(ros
     assert wait_for(lambda: _last_diagnostics(diags, name).get('no_pose') == '1', 10), diags
     assert len(poses) == 1
     assert 'landmark' in diags[name].message
+
+
+def test_a_silent_camera_warns_and_all_silent_is_an_error(ros_node, processes):
+    """Landmarks from every camera: OK. cam3 stops: WARN naming it, poses go on from two
+    cameras. All stop: ERROR. They come back: OK again."""
+    cfg, proc, poses, diags, pubs = _trinocular(
+        ros_node, processes, '-p', 'trinocular.diagnostics_period:=0.1',
+        '-p', 'trinocular.input_warn_after:=0.3', '-p', 'trinocular.input_error_after:=1.0',
+        '-p', 'trinocular.max_wait:=0.05')
+    pixels = _project_layout(cfg, np.array([0.4, -0.3, 1.2]), 2.5)
+    sending = set(range(3))
+    stamp = [1_000_000_000]
+    stop = threading.Event()
+
+    def send() -> None:
+        while not stop.is_set():
+            stamp[0] += 50_000_000
+            for k in sorted(sending):
+                pts = np.column_stack([pixels[k], np.ones(len(pixels[k]))])
+                pubs[k].publish(points_to_polygon(pts, Header(stamp=ns_to_stamp(stamp[0]))))
+            time.sleep(0.05)
+    thread = threading.Thread(target=send, daemon=True)
+    thread.start()
+    name = '/trinocular_pose_node'
+    status = lambda: diags.get(name, DiagnosticStatus())
+    try:
+        assert wait_for(lambda: status().level == OK and status().message == 'pose ok', 10), \
+            status()
+        sending.discard(2)
+        assert wait_for(lambda: status().level == WARN, 10), status()
+        assert status().message.startswith('no landmarks from cam3 '), status()
+        before = len(poses)
+        assert wait_for(lambda: len(poses) > before + 5, 5)
+        sending.clear()
+        assert wait_for(lambda: status().level == ERROR, 10), status()
+        assert all(c in status().message for c in CAMERAS), status()
+        sending.update(range(3))
+        assert wait_for(lambda: status().level == OK, 10), status()
+    finally:
+        stop.set()
+        thread.join()
+    assert proc.poll() is None
+    assert ('/cam1/landmarks, /cam2/landmarks, /cam3/landmarks -> /ground/pose'
+            in processes.log('trinocular_pose_node'))

@@ -1,12 +1,13 @@
 """Robust homography (section 2.3, Algorithm 1, eq 13-14) against exact synthetic truth."""
 import math
 
+import cv2
 import numpy as np
 import pytest
 
-from uav_vs.vision.homography import (METHODS, _linearise, adaptive_trials,
-                                      estimate_homography, refine_robust, solve_dlt,
-                                      solve_inhomogeneous, transfer_error)
+from uav_vs.vision.homography import (DEFAULT_METHOD, METHODS, _Normalised, _weighted_eq14,
+                                      adaptive_trials, estimate_homography, refine_robust,
+                                      solve_dlt, solve_inhomogeneous, transfer_error)
 
 H_TRUE = np.array([[0.9, -0.2, 40.0],
                    [0.15, 1.1, -25.0],
@@ -81,10 +82,10 @@ def test_recovers_exact_homography_through_outliers(method, outlier_frac):
 
 def test_trial_count_follows_the_formula_and_stops_early_on_clean_data():
     src, dst, _ = matches(outlier_frac=0.0, noise=0.0)
-    clean = estimate_homography(src, dst, rng=0)
-    assert clean.ok and clean.trials <= 8                   # first batch, N = 1 at eps = 0
+    clean = estimate_homography(src, dst, 'ransac', rng=0)
+    assert clean.ok and clean.trials <= 16                  # first batch, N = 1 at eps = 0
     src, dst, good = matches(n=400, outlier_frac=0.6, noise=0.0, seed=3)
-    r = estimate_homography(src, dst, rng=0, confidence=0.995, max_trials=5000)
+    r = estimate_homography(src, dst, 'ransac', rng=0, confidence=0.995, max_trials=5000)
     assert r.ok, r.reason
     needed = adaptive_trials(0.995, 1 - r.inliers.sum() / len(src))
     assert needed > 64                                      # really adaptive, not one batch
@@ -105,44 +106,49 @@ def test_refinement_converges_to_the_truth_from_any_start():
     np.testing.assert_allclose(project(a, CORNERS), project(b, CORNERS), atol=0.02)
 
 
-def test_linearisation_matches_finite_differences():
-    Hn = np.array([[0.9, -0.2, 0.1], [0.15, 1.1, -0.05], [0.2, -0.3, 1.0]])
-    rng = np.random.default_rng(6)
-    src, dst = rng.normal(0, 1, (6, 2)), rng.normal(0, 1, (6, 2))
-    ks, kd = 0.01, 0.02                             # normalisation scales, px -> normalised
-    r, J, z = _linearise(Hn, src, dst, ks, kd)
-    q = np.c_[src, np.ones(6)] @ Hn.T
-    p = np.c_[dst, np.ones(6)] @ np.linalg.inv(Hn).T
-    np.testing.assert_allclose(r, np.c_[(dst - q[:, :2] / q[:, 2:]) / kd,
-                                        (src - p[:, :2] / p[:, 2:]) / ks], atol=1e-12)
-    for k in range(8):
-        step = np.zeros(9)
-        step[k] = 1e-7
-        r_k = _linearise(Hn + step.reshape(3, 3), src, dst, ks, kd)[0]
-        np.testing.assert_allclose((r_k - r) / 1e-7, J[:, :, k], rtol=1e-5, atol=1e-3)
-    for x, z_i in zip(src, z):                      # 8 / (4 + |J|^2 + |J^-1|^2), J in px
-        w = Hn[2] @ [*x, 1]
-        u = Hn[:2] @ [*x, 1] / w
-        Jpx = (Hn[:2, :2] - np.outer(u, Hn[2, :2])) / w * ks / kd
-        expected = 8 / (4 + (Jpx ** 2).sum() + (np.linalg.inv(Jpx) ** 2).sum())
-        assert z_i == pytest.approx(expected, rel=1e-12)
+def test_weighted_fit_is_eq14_on_the_weighted_matches():
+    # Eq 14 (h33 = 1) on the matches with weight 1, solved by SVD least squares, is what
+    # the weighted normal equations give; scaling the weights changes nothing.
+    src, dst, good = matches(n=60, outlier_frac=0.3, noise=0.5, seed=4)
+    data = _Normalised(src, dst)
+    rows = np.repeat(good, 2)
+    h = np.linalg.lstsq(data.A[rows, :8], -data.A[rows, 8], rcond=None)[0]
+    for scale in (1.0, 3.0):
+        Hn = _weighted_eq14(data.A, scale * good)
+        np.testing.assert_allclose(Hn.ravel(), np.append(h, 1.0), rtol=0, atol=1e-9)
+    # On exact data every positive weighting gives the exact H.
+    dst = project(H_TRUE, src)
+    data = _Normalised(src, dst)
+    H = data.to_input(_weighted_eq14(data.A, np.random.default_rng(0).uniform(0.1, 2, 60)))
+    np.testing.assert_allclose(project(H, CORNERS), project(H_TRUE, CORNERS), atol=1e-6)
 
 
-def test_refinement_treats_both_images_alike():
-    # Swapping the images must give the inverse H: the cost is symmetric in them.
-    Z = np.array([[0.45, -0.12, 300.0], [0.1, 0.5, 150.0], [1e-4, -2e-4, 1.0]])
-    rng = np.random.default_rng(4)
-    src = rng.uniform([0, 0], [640, 480], (300, 2))
-    dst = project(Z, src) + rng.normal(0, 0.3, (300, 2))
-    dst[:60] = rng.uniform([250, 120], [560, 400], (60, 2))   # outliers
-    fwd = refine_robust(Z, src, dst, 3.0, tol_px=1e-6)
-    bwd = np.linalg.inv(refine_robust(np.linalg.inv(Z), dst, src, 3.0, tol_px=1e-6))
-    np.testing.assert_allclose(project(fwd, CORNERS), project(bwd, CORNERS), atol=1e-3)
+def test_refinement_gives_outliers_no_hold():
+    # Starting from the truth, the Cauchy-weighted refit stays where the true inliers put
+    # it: within the noise of their own least-squares fit, far from the fit on all matches.
+    src, dst, good = matches(n=400, outlier_frac=0.4, noise=0.5, seed=5)
+    H = refine_robust(H_TRUE, src, dst, 3.0)
+    ls_inliers = solve_inhomogeneous(src[good], dst[good])
+    assert corner_error(H) < 0.5
+    assert np.abs(project(H, CORNERS) - project(ls_inliers, CORNERS)).max() < 0.5
+    assert corner_error(solve_inhomogeneous(src, dst)) > 20.0
+
+
+def test_estimate_does_not_depend_on_the_sample_that_won():
+    # The refinement converges to the M-estimate of all matches: another order of the
+    # same matches and another seed give the same H, though RANSAC draws other samples.
+    src, dst, _ = matches(n=300, outlier_frac=0.4, noise=1.0, seed=6)
+    ref = estimate_homography(src, dst, 'ransac', rng=0)
+    for k in range(1, 6):
+        p = np.random.default_rng(k).permutation(len(src))
+        r = estimate_homography(src[p], dst[p], 'ransac', rng=k)
+        assert r.ok and (r.inliers == ref.inliers[p]).all()
+        assert np.abs(project(r.H, CORNERS) - project(ref.H, CORNERS)).max() < 0.01
 
 
 def test_without_refinement_is_algorithm_1():
     src, dst, good = matches(outlier_frac=0.4)
-    r = estimate_homography(src, dst, rng=0, refine=False)
+    r = estimate_homography(src, dst, 'ransac', rng=0, refine=False)
     assert r.ok and corner_error(r.H) < 1.0
     assert (r.inliers & ~good).sum() <= 2 and (r.inliers & good).sum() >= 0.95 * good.sum()
 
@@ -188,3 +194,67 @@ def test_bad_input_raises_one_line_errors():
     dst[0, 0] = np.nan
     with pytest.raises(ValueError, match='NaN'):
         estimate_homography(src, dst)
+
+
+def test_plane_coordinates_in_metres():
+    # A 0.2 m square tag seen by a camera: src on the tag in metres, dst in pixels.
+    K = np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]])
+    c, s = math.cos(0.4), math.sin(0.4)
+    R = np.array([[1, 0, 0], [0, c, -s], [0, s, c]]) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    t = np.array([-0.05, 0.02, 0.9])
+    H_tag = K @ np.c_[R[:, :2], t]
+    H_tag /= H_tag[2, 2]
+    rng = np.random.default_rng(7)
+    src = rng.uniform(0.0, 0.2, (120, 2))
+    dst = project(H_tag, src) + rng.normal(0, 0.3, (120, 2))
+    dst[:30] = rng.uniform([0, 0], [640, 480], (30, 2))    # outliers
+    corners_m = np.array([[0, 0], [0.2, 0], [0.2, 0.2], [0, 0.2]])
+    for method in ('ransac', 'lmeds', DEFAULT_METHOD):
+        r = estimate_homography(src, dst, method, rng=0)
+        assert r.ok, (method, r.reason)
+        err = np.linalg.norm(project(r.H, corners_m) - project(H_tag, corners_m), axis=1)
+        assert err.max() < 1.0, method                     # px, 0.3 px noise
+        assert r.inliers[30:].mean() > 0.95 and r.inliers[:30].sum() <= 1
+
+
+def test_plane_coordinates_in_metres_on_both_sides():
+    # Plane to plane in metres: a 0.2 m tag to its perspective image 1 m away.
+    Z = np.array([[0.9, -0.2, 0.04], [0.15, 1.1, -0.02], [0.8, -0.5, 1.0]])
+    rng = np.random.default_rng(8)
+    src = rng.uniform(0.0, 0.2, (100, 2))
+    dst = project(Z, src) + rng.normal(0, 2e-4, (100, 2))
+    corners_m = np.array([[0, 0], [0.2, 0], [0.2, 0.2], [0, 0.2]])
+    for method in ('ransac', DEFAULT_METHOD):
+        r = estimate_homography(src, dst, method, rng=0, threshold_px=2e-3)
+        assert r.ok, (method, r.reason)
+        assert np.abs(project(r.H, corners_m) - project(Z, corners_m)).max() < 1e-3, method
+
+
+def test_mirror_homography_is_accepted_when_asked():
+    # Corners listed the other way round: a valid map that reverses orientation.
+    M = np.diag([-1.0, 1.0, 1.0]) @ H_TRUE
+    M[0, 2] += 640.0 * M[2, 2]                              # x' -> 640 - x'
+    M /= M[2, 2]
+    src, _, _ = matches(outlier_frac=0.0)
+    rng = np.random.default_rng(9)
+    dst = project(M, src) + rng.normal(0, 0.5, src.shape)
+    bad = rng.random(len(src)) < 0.3
+    dst[bad] = rng.uniform([0, 0], [640, 480], (bad.sum(), 2))
+    for method in ('ransac', 'lmeds'):
+        assert not estimate_homography(src, dst, method, rng=0).ok       # refused by default
+        r = estimate_homography(src, dst, method, rng=0, mirror=True)
+        assert r.ok, (method, r.reason)
+        err = np.linalg.norm(project(r.H, CORNERS) - project(M, CORNERS), axis=1).mean()
+        assert err < 1.0 and np.linalg.det(r.H) < 0
+        assert (r.inliers & bad).sum() <= 2 and r.inliers[~bad].mean() > 0.95
+
+
+
+def test_default_is_opencv_ransac_with_the_project_checks():
+    """The default estimator is cv2.findHomography(RANSAC) itself, plus the failure checks."""
+    src, dst, _ = matches(outlier_frac=0.3)
+    r = estimate_homography(src, dst)
+    H, mask = cv2.findHomography(src, dst, cv2.RANSAC, 3.0, maxIters=2000, confidence=0.995)
+    assert DEFAULT_METHOD == 'opencv_ransac' and r.ok
+    np.testing.assert_allclose(r.H, H / H[2, 2], rtol=1e-9, atol=1e-12)
+    assert (r.inliers == mask.ravel().astype(bool)).all()

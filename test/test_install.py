@@ -42,7 +42,7 @@ def test_colcon_build_installs_every_executable(tmp_path):
         pytest.fail('colcon is missing from the venv (requirements-dev.txt)')
     src = tmp_path / 'src' / 'uav_vs'
     shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(
-        '.venv', '.git', 'build', 'install', 'log', '*.egg-info', '__pycache__', 'bags'))
+        '.venv*', '.git', 'build', 'install', 'log', '*.egg-info', '__pycache__', 'bags'))
     run = subprocess.run([str(colcon), 'build', '--base-paths', 'src'], cwd=tmp_path,
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stdout + run.stderr

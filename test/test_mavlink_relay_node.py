@@ -8,24 +8,33 @@ NED heading psi moves the vehicle along forward = (cos psi, sin psi) and
 right = (-sin psi, cos psi). For the simulator's first-order velocity lag, the distance
 flown by a velocity held for T seconds, once stopped, is exactly v * T.
 """
+import logging
 import math
+import re
+import shlex
 import subprocess
 import threading
 import time
 
 import numpy as np
 import pytest
+import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped, TwistStamped
+from geometry_msgs.msg import PoseStamped, Twist, TwistStamped
 from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import Log
+from rclpy.logging import LoggingSeverity
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Header
 from std_srvs.srv import SetBool, Trigger
 
 from conftest import REPO, wait_for
 from uav_vs import graph
 from uav_vs.autopilot.link import load_signing_key, mavlink, open_connection
+from uav_vs.autopilot.session import SEND_BURST
 from uav_vs.graph import executable
+from uav_vs.ros import log_bridge
 from uav_vs.ros.convert import (msg_to_odometry, ns_to_stamp, odometry_to_msg, pose_to_msg,
                                 twist_to_msg)
 from uav_vs.sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
@@ -59,6 +68,7 @@ class Probe:
     def __init__(self, node, ns: str = ''):
         self.node, self.name = node, f'{ns}{NODE}'
         self.diags: dict[str, dict] = {}
+        self.diag_messages: dict[str, str] = {}
         self.odom: list[Odometry] = []
         node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 50)
         node.create_subscription(Odometry, f'{ns}/autopilot/odom', self.odom.append, 10)
@@ -69,6 +79,7 @@ class Probe:
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
+            self.diag_messages[status.name] = status.message   # before the values waited on
             self.diags[status.name] = {kv.key: kv.value for kv in status.values}
 
     def diag(self) -> dict:
@@ -352,6 +363,23 @@ class BareAutopilot:
         self.conn.close()
 
 
+def forward_vision(pub, autopilot: 'BareAutopilot', good: PoseStamped, bad: PoseStamped) -> list:
+    """Publish `good` then `bad` alternately until the relay forwards one (the subscription
+    has matched); the VISION_POSITION_ESTIMATEs that reached the autopilot (at least one)."""
+    def vision():
+        return [m for m in autopilot.received if m.get_type() == 'VISION_POSITION_ESTIMATE']
+    end = time.monotonic() + 10
+    while not vision() and time.monotonic() < end:
+        pub.publish(good)
+        time.sleep(0.05)   # the relay keeps only the newest message (depth 1)
+        pub.publish(bad)
+        time.sleep(0.05)
+    time.sleep(0.3)
+    forwarded = vision()
+    assert forwarded, 'no vision pose was forwarded'
+    return forwarded
+
+
 def test_vision_pose_is_forwarded_in_ned(ros_node, processes):
     autopilot = BareAutopilot()
     try:
@@ -366,17 +394,7 @@ def test_vision_pose_is_forwarded_in_ned(ros_node, processes):
                            Header(stamp=ns_to_stamp(1_700_000_000_250_000_000), frame_id='world'))
         bad = pose_to_msg([1.0, 2.0, 3.0], [0.0, 0.0, s, s], Header(frame_id='map'))
 
-        def vision():
-            return [m for m in autopilot.received if m.get_type() == 'VISION_POSITION_ESTIMATE']
-        end = time.monotonic() + 10
-        while not vision() and time.monotonic() < end:   # until the subscription has matched
-            pub.publish(good)
-            time.sleep(0.05)   # the relay keeps only the newest message (depth 1)
-            pub.publish(bad)
-            time.sleep(0.05)
-        time.sleep(0.3)
-        forwarded = vision()
-        assert forwarded
+        forwarded = forward_vision(pub, autopilot, good, bad)
         diag = probe.wait_diag(vision=str(len(forwarded)))
         assert int(diag['malformed']) >= 1 and int(diag['cmd_vel']) == 0
         for v in forwarded:   # ENU (east 1, north 2, up 3) is NED (north 2, east 1, down -3)
@@ -463,6 +481,7 @@ def test_signing_rejects_unsigned_traffic_both_ways_and_installs_the_key(ros_nod
     (None, 'connection: missing'),
     ('geofence.min:=[0.0, 0.0]', 'geofence.min: expected 3 numbers'),
     ('signing_key_file:=/nonexistent/key', 'signing_key_file: cannot read /nonexistent/key'),
+    ('max_send_rate:=5.0', 'max_send_rate: expected at least stream_rate (10.0 Hz), got 5.0'),
 ])
 def test_bad_parameter_stops_the_node_with_one_fatal_line(tmp_path, override, expected):
     doc = yaml.safe_load(CONFIG.read_text())
@@ -478,6 +497,175 @@ def test_bad_parameter_stops_the_node_with_one_fatal_line(tmp_path, override, ex
     assert run.returncode == 2, run.stderr
     fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
     assert len(fatal) == 1 and expected in fatal[0], run.stdout + run.stderr
+
+
+def test_a_cmd_vel_burst_is_coalesced_to_max_send_rate_and_the_newest_is_sent(ros_node,
+                                                                            processes):
+    vehicle, connection = vehicle_and_connection('udp')
+    try:
+        start_relay(processes, connection, 'max_send_rate:=40.0', 'command_timeout:=2.5')
+        probe = Probe(ros_node)
+        probe.wait_diag(link='connected')
+        assert wait_for(lambda: probe.cmd.get_subscription_count() > 0, 20)
+        t0 = time.monotonic()
+        n = 0
+        while time.monotonic() < t0 + 1.0:   # ~1 kHz for 1 s (targets are recorded on the ground)
+            probe.send('world', [min(n / 1000, 1.0), 0.0, 0.0])
+            n += 1
+            time.sleep(0.001)
+        probe.send('world', [0.0, 0.5, 0.0])   # the newest: north 0.5
+        assert wait_for(lambda: any(t.velocity == (0.5, 0.0, 0.0)
+                                    for t in vehicle.targets(since=t0)), 2.0), 'newest never sent'
+        end = time.monotonic()
+        sent = vehicle.targets(since=t0)
+        assert len(sent) <= 40.0 * (end - t0) + SEND_BURST, (n, len(sent), end - t0)
+        assert sent[-1].velocity == (0.5, 0.0, 0.0)
+        diag = probe.wait_diag()
+        assert wait_for(lambda: int(probe.diag()['coalesced']) > 0, 5), probe.diag()
+        assert int(diag['cmd_vel']) > 2 * len(sent)   # most of the burst did reach the relay
+    finally:
+        vehicle.stop()
+
+
+def test_an_unknown_host_is_named_in_the_diagnostics_and_the_node_log(ros_node, processes):
+    start_relay(processes, 'tcp:nohost.invalid:5760')
+    probe = Probe(ros_node)
+    reason = "cannot open tcp:nohost.invalid:5760: host 'nohost.invalid' does not resolve"
+    assert wait_for(lambda: probe.diag().get('link_reason', '').startswith(reason), 20), probe.diag()
+    assert probe.diag()['link'] == 'connecting'
+    time.sleep(3.0)   # three more tries within the 10 s warning period
+    lines = [line for line in processes.log('relay').splitlines() if reason in line]
+    assert len(lines) == 1 and '[WARN]' in lines[0] and '[mavlink_relay_node]' in lines[0], lines
+
+
+def test_a_cmd_vel_publisher_of_another_type_is_warned_about_once_and_shown(ros_node, processes):
+    """A geometry_msgs/Twist publisher on cmd_vel is never heard by the relay (it takes
+    TwistStamped): it is named in one warning and in the diagnostics while it lasts."""
+    vehicle, connection = vehicle_and_connection('udp')
+    ctx = None
+    try:
+        start_relay(processes, connection)
+        probe = Probe(ros_node)                      # its cmd_vel publisher is TwistStamped
+        assert wait_for(lambda: probe.cmd.get_subscription_count() > 0, 20)
+        probe.wait_diag(link='connected', cmd_vel_wrong_type='')
+        ctx = rclpy.Context()    # a participant of its own (one may not hold both types)
+        rclpy.init(context=ctx)
+        teleop = rclpy.create_node('teleop', context=ctx)
+        twist = teleop.create_publisher(Twist, '/cmd_vel', 10)
+        diag = probe.wait_diag(cmd_vel_wrong_type='/teleop (geometry_msgs/msg/Twist)')
+        assert 'cmd_vel publishers of another type' in probe.diag_messages[NODE]
+        t0 = time.monotonic()
+        for _ in range(10):
+            twist.publish(Twist())
+            time.sleep(0.05)
+        time.sleep(1.0)                              # five more diagnostics periods
+        assert int(probe.diag()['cmd_vel']) == 0 and vehicle.targets(since=t0) == []
+        lines = [line for line in processes.log('relay').splitlines() if 'geometry_msgs' in line]
+        assert lines == [lines[0]] and '[WARN]' in lines[0], lines
+        assert ('/cmd_vel: /teleop publishes geometry_msgs/msg/Twist, the relay subscribes '
+                'geometry_msgs/msg/TwistStamped' in lines[0]), lines
+        teleop.destroy_publisher(twist)
+        probe.wait_diag(cmd_vel_wrong_type='')
+        assert int(diag['cmd_vel']) == 0
+    finally:
+        if ctx is not None:
+            teleop.destroy_node()
+            rclpy.shutdown(context=ctx)
+        vehicle.stop()
+
+
+def test_the_relays_core_lines_reach_its_console_and_rosout_at_their_severity(ros_node,
+                                                                             processes):
+    """The session's lines (link, watchdog, the autopilot's STATUSTEXT) in a running relay:
+    on /rosout under the node's name at their severity, and on its console the same way."""
+    rosout = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)   # rcl's, with its history
+    received = []
+    ros_node.create_subscription(Log, '/rosout', received.append, rosout)
+    vehicle, connection = vehicle_and_connection('udp', ready_delay=60.0)   # never ready
+    try:
+        start_relay(processes, connection, 'allow_arming:=true', 'command_timeout:=0.3')
+        probe = Probe(ros_node)
+        assert wait_for(lambda: probe.cmd.get_subscription_count() > 0, 20)
+        probe.wait_diag(link='connected')
+        probe.send('world', [0.0, 0.0, 0.0])        # taken, then stale: hovering
+        probe.wait_diag(command='hover')
+        assert not probe.call('arm', True).success   # refused with a CRITICAL STATUSTEXT
+        vehicle.cut_link()
+        probe.wait_diag(link='lost')
+        expected = [(Log.INFO, f'opened {connection}'),
+                    (Log.INFO, 'connected to ardupilot QUADROTOR (system 1)'),
+                    (Log.INFO, 'command input stale for'),
+                    (Log.ERROR, 'autopilot: PreArm: Need Position Estimate'),
+                    (Log.WARN, 'link lost: no HEARTBEAT for')]
+        core = lambda: [(m.level, m.msg) for m in received  # noqa: E731
+                        if m.name == 'mavlink_relay_node' and m.file.endswith('log_bridge.py')]
+        assert wait_for(lambda: len(core()) >= len(expected), 10), core()
+        assert [(level, text) for (level, text), (_, start) in zip(core(), expected)
+                if not text.startswith(start)] == [], core()
+        assert [level for level, _ in core()[:len(expected)]] == [lv for lv, _ in expected]
+        console = processes.log('relay').splitlines()
+        for level, text in expected:
+            name = {Log.INFO: 'INFO', Log.WARN: 'WARN', Log.ERROR: 'ERROR'}[level]
+            assert any(line.startswith(f'[{name}]') and f'[mavlink_relay_node]: {text}' in line
+                       for line in console), (text, console)
+        assert all(line.startswith('[') for line in console), console   # nothing bypasses it
+    finally:
+        vehicle.stop()
+
+
+def test_core_log_records_reach_rosout_at_their_severity(ros_node):
+    received = []
+    ros_node.create_subscription(Log, '/rosout', received.append, 50)
+    handler = log_bridge.forward('uav_vs.bridge_test', ros_node.get_logger())
+    try:
+        core = logging.getLogger('uav_vs.bridge_test.session')
+        time.sleep(0.5)   # the /rosout subscription matches
+        core.debug('not shown at INFO')
+        core.info('opened %s', 'tcp:127.0.0.1:5760')
+        core.warning('link lost')
+        core.error('refused')
+        mine = lambda: [(m.level, m.msg) for m in received if m.name == 'test_probe']  # noqa: E731
+        assert wait_for(lambda: len(mine()) >= 3, 5), received
+        assert mine() == [(Log.INFO, 'opened tcp:127.0.0.1:5760'), (Log.WARN, 'link lost'),
+                          (Log.ERROR, 'refused')]
+        # the rclpy logger's level as it is now: set while running, the core follows it
+        ros_node.get_logger().set_level(LoggingSeverity.DEBUG)
+        core.debug('shown at DEBUG')
+        assert wait_for(lambda: len(mine()) >= 4, 5), received
+        assert mine()[3] == (Log.DEBUG, 'shown at DEBUG')
+        ros_node.get_logger().set_level(LoggingSeverity.WARN)
+        core.info('not shown at WARN')
+        core.warning('shown at WARN')
+        assert wait_for(lambda: len(mine()) >= 5, 5), received
+        assert mine()[4:] == [(Log.WARN, 'shown at WARN')]
+    finally:
+        ros_node.get_logger().set_level(LoggingSeverity.INFO)
+        log_bridge.stop_forwarding('uav_vs.bridge_test', handler)
+
+
+def relay_command_lines() -> list[tuple[str, list[str]]]:
+    """(page, argv) of every mavlink_relay_node command in the docs' sh blocks."""
+    found = []
+    for page in [REPO / 'README.md', *sorted((REPO / 'docs').glob('*.md'))]:
+        for block in re.findall(r'^```sh\n(.*?)^```', page.read_text(), re.M | re.S):
+            for line in block.replace('\\\n', ' ').splitlines():
+                argv = shlex.split(line, comments=True)
+                if argv[:1] == ['mavlink_relay_node']:
+                    found.append((page.name, argv))
+    return found
+
+
+def test_every_relay_command_in_the_docs_sets_declared_parameters_and_can_arm():
+    """The flight steps that follow each command arm the vehicle: allow_arming must be set."""
+    from uav_vs.nodes.mavlink_relay_node import PARAMS
+    declared = {p.name for p in PARAMS}
+    commands = relay_command_lines()
+    assert len(commands) >= 5, commands
+    for page, argv in commands:
+        rules = dict(arg.split(':=', 1) for prev, arg in zip(argv, argv[1:]) if prev == '-p')
+        assert set(rules) <= declared, (page, argv)
+        assert rules.get('allow_arming') == 'true', (page, ' '.join(argv))
 
 
 def test_odometry_twist_is_expressed_in_the_child_frame():
@@ -496,3 +684,33 @@ def test_odometry_twist_is_expressed_in_the_child_frame():
     msg = odometry_to_msg([0.0, 0.0, 0.0], [s, 0.0, 0.0, s], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0],
                           header, 'base_link')
     assert np.allclose(msg_to_odometry(msg)[2], [0.0, 1.0, 0.0])
+
+
+@pytest.mark.parametrize('autopilot', ['px4', 'ardupilot'])
+def test_odometry_covariances_are_the_autopilots_in_ros_frames(ros_node, processes, autopilot):
+    """PX4's ODOMETRY variances (NED position and velocity, FRD orientation) come out in
+    ENU / FLU: east and north swap, the velocity's seen from the body at its heading.
+    ArduPilot reports no covariance: zero (unknown)."""
+    vehicle, connection = vehicle_and_connection('udp', autopilot=autopilot)
+    try:
+        start_relay(processes, connection)
+        probe = Probe(ros_node)
+        assert wait_for(lambda: probe.odom and any(probe.odom[-1].pose.covariance)
+                        or autopilot == 'ardupilot' and len(probe.odom) > 20, 20)
+        last = probe.odom[-1]
+        pose, twist = (np.reshape(c, (6, 6)) for c in (last.pose.covariance,
+                                                      last.twist.covariance))
+        if autopilot == 'ardupilot':
+            assert not pose.any() and not twist.any()
+            return
+        (pn, pe, pd), orientation, (vn, ve, vd) = VehicleConfig().odometry_variance
+        assert np.allclose(pose, np.diag([pe, pn, pd, *orientation]))
+        psi = vehicle.truth().yaw                   # NED heading: forward = (cos, sin) N, E
+        c, s = math.cos(psi), math.sin(psi)
+        forward = c * c * vn + s * s * ve           # variance along the forward axis
+        left = s * s * vn + c * c * ve              # along left = -(right) = (s, -c)
+        cross = c * s * (vn - ve)
+        assert np.allclose(twist[:3, :3], [[forward, cross, 0], [cross, left, 0], [0, 0, vd]])
+        assert not twist[3:].any()                  # body rates: PX4 says NaN, unknown
+    finally:
+        vehicle.stop()

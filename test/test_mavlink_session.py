@@ -6,15 +6,19 @@ so a frame mix-up in the session cannot cancel out. For the simulator's first-or
 velocity lag the distance flown by a velocity pulse, once stopped, is exactly v * T.
 """
 import contextlib
+import logging
 import math
 import time
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from uav_vs.autopilot.link import load_signing_key, mavlink, open_connection
-from uav_vs.autopilot.session import (AutopilotError, CommandError, CommandState, Limits,
-                                      LinkState, Session, SessionConfig)
+from uav_vs.autopilot.session import (SEND_BURST, AutopilotError, CommandError, CommandState,
+                                      Limits, LinkState, Session, SessionConfig, fence_velocity,
+                                      limit_velocity)
 from uav_vs.sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
 
 VELOCITY_YAW_RATE = 0x05C7
@@ -122,8 +126,11 @@ def test_udp_flight_limits_and_stale_input_hover():
         t0 = time.monotonic()
         assert session.send_velocity([30.0, 40.0, 5.0], yaw_rate=-9.0)  # limits 2 m/s, 1 m/s, 1 rad/s
         assert session.send_velocity([0.0, 0.0, 0.0])
-        wait_for(lambda: vehicle.targets(since=t0), 1.0, 'the command')
-        sent = vehicle.targets(since=t0)[0]
+        # a watchdog zero from before may land first: the limited command is the moving one
+        def moving():
+            return [t for t in vehicle.targets(since=t0) if t.velocity != (0.0, 0.0, 0.0)]
+        wait_for(moving, 1.0, 'the command')
+        sent = moving()[0]
         assert sent.frame == mavlink.MAV_FRAME_LOCAL_NED
         assert np.allclose(sent.velocity, [1.6, 1.2, -1.0])  # NED: north 1.6, east 1.2, up 1.0
         assert math.isclose(sent.yaw_rate, 1.0)            # -1 rad/s about up = +1 about down
@@ -237,10 +244,11 @@ def test_signing_rejects_unsigned_traffic_both_ways(tmp_path, transport):
     with pair(transport, vehicle_cfg={'signing_key': key}, allow_arming=True,
               signing_key_file=str(key_file)) as (vehicle, session):
         session.wait_connected(5.0)
+        wait_for(lambda: session.status().prearm_ok, 5.0, 'a position (GUIDED needs one)')
         session.set_guided()
         assert vehicle.truth().mode == 'GUIDED'       # signed commands accepted, ACKs accepted
         status = session.status()
-        assert status.signing and status.vehicle_signs and status.rejected == 0
+        assert status.signing and status.vehicle_signs and status.rejected_unsigned == 0
         if transport == 'tcp':
             session.close()
         gcs = _raw_gcs(transport, vehicle.address[1])
@@ -254,7 +262,7 @@ def test_signing_rejects_unsigned_traffic_both_ways(tmp_path, transport):
     with pair(transport, signing_key_file=str(key_file)) as (vehicle, session):
         with pytest.raises(AutopilotError, match='timed out'):
             session.wait_connected(2.5)
-        assert session.status().link is LinkState.CONNECTING and session.status().rejected > 0
+        assert session.status().link is LinkState.CONNECTING and session.status().rejected_unsigned > 0
 
 
 @pytest.mark.parametrize('transport', ['udp', 'tcp'])
@@ -393,6 +401,7 @@ def test_ardupilot_is_ready_to_arm_only_with_prearm_bit_ekf_flags_and_3d_fix():
         assert reasons() is True
         assert {mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT, mavlink.MAVLINK_MSG_ID_GPS_RAW_INT,
                 mavlink.MAVLINK_MSG_ID_SYS_STATUS} <= ap.requested
+        assert mavlink.MAVLINK_MSG_ID_ODOMETRY not in ap.requested      # ArduPilot sends none
     ap.conn.close()
 
 
@@ -407,6 +416,7 @@ def test_px4_readiness_is_its_prearm_bit_and_no_ekf_status_report_is_requested()
         assert session.status().prearm_reasons == ()
         assert mavlink.MAVLINK_MSG_ID_SYS_STATUS in px4.requested
         assert not {mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT, mavlink.MAVLINK_MSG_ID_GPS_RAW_INT} & px4.requested
+        assert mavlink.MAVLINK_MSG_ID_ODOMETRY in px4.requested           # its covariances
     px4.conn.close()
 
 
@@ -529,7 +539,6 @@ def test_the_same_calls_fly_the_simulated_px4():
 
 
 def test_fence_limits_only_outward_components_by_the_distance_to_the_face():
-    from uav_vs.autopilot.session import fence_velocity
     lo, hi = (-5.0, -5.0, 0.5), (5.0, 5.0, 3.0)
     v = np.array([1.0, -1.0, 0.5])
     assert np.array_equal(fence_velocity(v, np.array([0.0, 0.0, 1.0]), lo, hi, 1.5), v)  # far inside
@@ -540,3 +549,186 @@ def test_fence_limits_only_outward_components_by_the_distance_to_the_face():
     assert np.allclose(fence_velocity(-v, np.array([5.2, 0.0, 1.0]), lo, hi, 1.5), [-1.0, 1.0, -1 / 3])
     assert np.array_equal(fence_velocity(v, np.array([0.0, -5.0, 3.0]), lo, hi, 1.5), [1.0, 0.0, 0.0])
     assert np.array_equal(fence_velocity(v, None, lo, hi, 1.5), np.zeros(3))            # no estimate: hover
+
+
+# ---------------------------------------------------------------- bounded commands
+LIMITS = Limits(max_speed=2.0, max_climb=1.0, max_descent=0.7, max_yaw_rate=1.0)
+HUGE = 1.7976931348623157e308   # the largest float
+COMPONENTS = st.floats(allow_nan=False, allow_infinity=False)   # subnormals and 1e308 included
+
+
+def _within(v, yaw_rate, limits=LIMITS, rel=1e-12):
+    x, y, z = v
+    return (all(map(math.isfinite, (x, y, z, yaw_rate)))
+            and math.hypot(x, y) <= limits.max_speed * (1 + rel)
+            and -limits.max_descent <= z <= limits.max_climb
+            and abs(yaw_rate) <= limits.max_yaw_rate)
+
+
+@pytest.mark.parametrize('v', [(1e308, 0.0, 0.0), (-1e308, 1e308, 0.0), (HUGE, HUGE, HUGE),
+                               (-HUGE, 5e-324, -HUGE), (1e308, 3.0, 0.0), (1e200, -1e308, 1e308)])
+def test_huge_commands_are_scaled_to_the_limit_with_their_direction(v):
+    (x, y, z), yaw_rate = limit_velocity(v, -HUGE, LIMITS)
+    assert _within((x, y, z), yaw_rate)
+    assert math.isclose(math.hypot(x, y), 2.0, rel_tol=1e-12)
+    assert math.isclose(math.atan2(y, x), math.atan2(v[1], v[0]), abs_tol=1e-12)
+    assert z == (1.0 if v[2] > 0 else -0.7 if v[2] < 0 else 0.0) and yaw_rate == -1.0
+
+
+@given(st.tuples(COMPONENTS, COMPONENTS, COMPONENTS), COMPONENTS)
+def test_any_finite_command_is_limited_to_a_finite_one_in_its_direction(v, yaw_rate):
+    (x, y, z), r = limit_velocity(v, yaw_rate, LIMITS)
+    assert _within((x, y, z), r)
+    if math.hypot(v[0] / 2, v[1] / 2) <= 1.0 * (1 - 1e-12):   # |v| <= max_speed: untouched
+        assert (x, y) == (v[0], v[1])
+    elif (x, y) != (0.0, 0.0):
+        assert math.isclose(math.atan2(y, x), math.atan2(v[1], v[0]), abs_tol=1e-12)
+
+
+@pytest.mark.parametrize('bad', [(math.inf, 0.0, 0.0), (0.0, -math.inf, 0.0), (0.0, 0.0, math.nan)])
+def test_non_finite_commands_raise(bad):
+    with pytest.raises(ValueError, match='not finite'):
+        limit_velocity(bad, 0.0, LIMITS)
+    with pytest.raises(ValueError, match='not finite'):
+        limit_velocity((0.0, 0.0, 0.0), bad[0] + bad[1] + bad[2], LIMITS)
+
+
+@pytest.mark.parametrize('position, stamp, why', [
+    ((3.5e38, 0.0, 0.0), 1.0, 'not finite in float32'),     # finite, but no MAVLink float
+    ((0.0, math.nan, 0.0), 1.0, 'not finite in float32'),
+    ((1.0, 2.0, 3.0), -1.0, 'not a time since the epoch'),   # time_usec is unsigned
+])
+def test_a_vision_pose_that_cannot_go_on_the_wire_raises(position, stamp, why):
+    session = Session(SessionConfig(connection='udpout:127.0.0.1:9'))   # never started
+    with pytest.raises(ValueError, match=why):
+        session.send_vision_pose(position, [0.0, 0.0, 0.0, 1.0], stamp)
+
+
+@given(st.tuples(COMPONENTS, COMPONENTS, COMPONENTS),
+       st.tuples(COMPONENTS, COMPONENTS, COMPONENTS))
+def test_the_fence_never_makes_a_limited_command_faster(v, position):
+    limited, _ = limit_velocity(v, 0.0, LIMITS)
+    fenced = fence_velocity(np.array(limited), np.array(position), (-5.0, -5.0, 0.0),
+                            (5.0, 5.0, 3.0), 1.5)
+    assert np.isfinite(fenced).all() and (np.abs(fenced) <= np.abs(limited)).all()
+
+
+@pytest.mark.parametrize('position', [(math.nan, 0.0, 1.0), (0.0, math.inf, 1.0)])
+def test_the_fence_hovers_on_a_non_finite_position_estimate(position):
+    fenced = fence_velocity(np.array([1.0, -1.0, 0.5]), np.array(position), (-5.0, -5.0, 0.0),
+                            (5.0, 5.0, 3.0), 1.5)
+    assert np.array_equal(fenced, np.zeros(3))
+
+
+def test_limits_and_send_rate_must_be_finite_and_consistent():
+    with pytest.raises(ValueError, match='max_speed'):
+        Limits(max_speed=math.inf)
+    with pytest.raises(ValueError, match='max_yaw_rate'):
+        Limits(max_yaw_rate=math.nan)
+    with pytest.raises(ValueError, match='max_send_rate must be at least stream_rate'):
+        Session(SessionConfig(connection='udpout:127.0.0.1:9', stream_rate=20.0, max_send_rate=10.0))
+
+
+def test_what_reaches_the_wire_is_finite_and_within_the_limits_for_any_float():
+    """1e308, -1e308, the largest float, subnormals and mixed magnitudes, in both frames:
+    every SET_POSITION_TARGET_LOCAL_NED the vehicle receives is finite and within limits
+    (float32 on the wire: 1e-6 relative), and a non-finite command sends nothing."""
+    commands = [((1e308, 0.0, 0.0), 0.0), ((-1e308, 1e308, -1e308), 1e308),
+                ((HUGE, -HUGE, HUGE), -HUGE), ((5e-324, -5e-324, 5e-324), 5e-324),
+                ((1e308, 1e-308, 1e300), -1e-300), ((-3.0, 40.0, -9.0), 7.0)]
+    with pair('udp', allow_arming=True, max_send_rate=1000.0) as (vehicle, session):
+        take_off(session, vehicle)
+        t0 = time.monotonic()
+        for body in (False, True):
+            for v, yaw_rate in commands:
+                assert session.send_velocity(v, yaw_rate, body=body)
+                time.sleep(0.03)
+        for bad in ((math.inf, 0.0, 0.0), (0.0, math.nan, 0.0)):
+            with pytest.raises(ValueError, match='not finite'):
+                session.send_velocity(bad)
+        assert session.send_velocity((0.0, 0.0, 0.0))
+        wait_for(lambda: len(vehicle.targets(since=t0)) >= 2 * len(commands) + 1, 2.0, 'the targets')
+        sent = vehicle.targets(since=t0)
+        for t in sent:   # NED/FRD: horizontal (x, y), z down, yaw rate about down
+            assert _within((t.velocity[0], t.velocity[1], -t.velocity[2]), t.yaw_rate, rel=1e-6), t
+        assert any(math.isclose(math.hypot(*t.velocity[:2]), 2.0, rel_tol=1e-6) for t in sent)
+        settle(vehicle)
+
+
+def test_a_burst_is_coalesced_to_the_send_rate_and_its_newest_command_is_flown():
+    rate = 50.0
+    with pair('udp', allow_arming=True, max_send_rate=rate, command_timeout=2.5) as (vehicle, session):
+        take_off(session, vehicle)
+        t0 = time.monotonic()
+        n = 0
+        while time.monotonic() < t0 + 0.5:   # ~1 kHz for 0.5 s: east 0..1 m/s
+            assert session.send_velocity((min(n / 500, 1.0), 0.0, 0.0))
+            n += 1
+            time.sleep(0.001)
+        last = time.monotonic()
+        assert session.send_velocity((0.0, 0.5, 0.0))   # north 0.5: the one to be flown
+        wait_for(lambda: any(t.velocity == (0.5, 0.0, 0.0) for t in vehicle.targets(since=last)),
+                 0.9, 'the newest command (before the watchdog hovers)')
+        end = time.monotonic()
+        sent = [t for t in vehicle.targets(since=t0) if t.time <= end]
+        assert n > 100 and len(sent) <= rate * (end - t0) + SEND_BURST, (n, len(sent), end - t0)
+        assert sent[-1].velocity == (0.5, 0.0, 0.0)
+        assert session.status().coalesced >= n + 1 - len(sent)   # each one sent or coalesced
+        assert session.status().held >= session.status().coalesced > 0
+        wait_for(lambda: abs(vehicle.truth().velocity[0] - 0.5) < 0.02, 2.0, 'north at 0.5 m/s')
+
+
+def test_a_jittered_stream_at_the_send_rate_is_never_held_back():
+    """A controller at max_send_rate whose commands come 12 and 28 ms apart (mean 20 ms)
+    sends each one at once: no command waits for a send token."""
+    with pair('udp', allow_arming=True, max_send_rate=50.0, command_timeout=2.5) as (vehicle, session):
+        take_off(session, vehicle)
+        t0 = time.monotonic()
+        for k in range(100):
+            assert session.send_velocity((0.001 * (k + 1), 0.0, 0.0))
+            time.sleep(0.012 if k % 2 else 0.028)
+        assert session.status().held == 0
+        wait_for(lambda: len({t.velocity for t in vehicle.targets(since=t0)}) >= 100, 1.0,
+                 'every command')
+
+
+def test_a_command_waiting_for_its_slot_is_still_sent_on_close():
+    with pair('udp', allow_arming=True, max_send_rate=2.5, stream_rate=2.5) as (vehicle, session):
+        take_off(session, vehicle)
+        assert session.send_velocity((0.5, 0.0, 0.0))
+        assert session.send_velocity((0.0, 0.0, 0.0))   # within 0.4 s of the first: waits
+        session.close()
+        wait_for(lambda: vehicle.targets() and vehicle.targets()[-1].velocity[1] == 0.0, 1.0,
+                 'the zero command')
+        assert [t.velocity[1] for t in vehicle.targets()[-2:]] == [0.5, 0.0]
+
+
+def test_an_unknown_host_is_named_throttled_and_kept_as_the_link_reason(caplog):
+    caplog.set_level(logging.WARNING, logger='uav_vs.autopilot')
+    with Session(SessionConfig(connection='tcp:nohost.invalid:5760')) as session:
+        wait_for(lambda: session.status().link_reason, 3.0, 'a link reason')
+        time.sleep(2.5)   # two more tries, inside the warning period
+        status = session.status()
+        assert status.link is LinkState.CONNECTING
+        assert status.link_reason.startswith("cannot open tcp:nohost.invalid:5760: host "
+                                             "'nohost.invalid' does not resolve")
+    warnings = [r.getMessage() for r in caplog.records if 'does not resolve' in r.getMessage()]
+    assert len(warnings) == 1 and warnings[0].startswith(status.link_reason)
+
+
+def test_odometry_with_an_attitude_that_is_no_rotation_leaves_the_twist_covariance_unknown():
+    px4 = ReadinessEndpoint(mavlink.MAV_AUTOPILOT_PX4)
+    diagonal = [math.nan] * 21
+    diagonal[0] = diagonal[6] = diagonal[11] = 0.1          # PX4: variances on the diagonal
+    with Session(SessionConfig(connection=f'udpout:127.0.0.1:{px4.port}')) as session:
+        def send(q) -> None:
+            px4.conn.mav.odometry_send(0, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_NED,
+                                       0, 0, 0, q, 0, 0, 0, 0, 0, 0, diagonal, diagonal)
+        px4.pump(lambda: session.status().autopilot == 'px4')
+        send([0.0, 0.0, 0.0, 0.0])
+        px4.pump(lambda: session.telemetry().pose_covariance is not None)
+        assert session.telemetry().twist_covariance is None
+        send([1.0, 0.0, 0.0, 0.0])                           # level, facing north
+        px4.pump(lambda: session.telemetry().twist_covariance is not None)
+        assert np.allclose(np.diag(session.telemetry().twist_covariance), [0.1] * 3 + [0] * 3)
+    px4.conn.close()

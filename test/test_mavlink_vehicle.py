@@ -161,6 +161,57 @@ def test_guided_targets_ground_takeoff_abort_and_guid_timeout():
         gcs.close()
 
 
+def hold(sim, gcs, seconds):
+    """Stream a zero velocity target for `seconds`; the truth every 0.1 s and every
+    LOCAL_POSITION_NED received meanwhile."""
+    truths, reported = [], []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        gcs.target((0.0, 0.0, 0.0))
+        reported += [m for m in gcs.collect(0.1) if m.get_type() == 'LOCAL_POSITION_NED']
+        truths.append(sim.truth())
+    return truths, reported
+
+
+def test_gusts_push_a_holding_vehicle():
+    sigma, tau = 0.3, 0.5
+    with vehicle(gust_sigma=sigma, gust_time_constant=tau, seed=3) as sim:
+        gcs = Gcs(sim.address[1])
+        time.sleep(0.5)
+        assert np.all(sim.truth().position == 0.0)          # no gusts on the ground
+        airborne(sim, gcs, height=2.0)
+        truths, _ = hold(sim, gcs, 6.0)
+        v = np.array([t.velocity for t in truths])
+        # the gust is the ground velocity of a vehicle told to hold: spread sigma, level
+        assert 0.5 * sigma < v[:, :2].std() < 1.6 * sigma
+        assert np.abs(v[:, 2]).max() < 0.05
+        moved = truths[-1].position - truths[0].position
+        assert np.linalg.norm(moved[:2]) > 0.02 and abs(moved[2]) < 0.05
+        gcs.close()
+
+
+def test_the_reported_position_drifts_from_the_truth_and_gps_stays_true():
+    rate = 0.05
+    with vehicle(drift_rate=rate, seed=4) as sim:
+        gcs = Gcs(sim.address[1])
+        for msg_id in (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_GPS_RAW_INT):
+            assert gcs.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 50000) == \
+                mavlink.MAV_RESULT_ACCEPTED
+        airborne(sim, gcs, height=2.0)
+        wait_for(lambda: np.linalg.norm(sim.truth().velocity) < 1e-4, 4.0, 'the end of the climb')
+        gcs.collect(0.3)                                    # what was sent on the climb
+        truths, reported = hold(sim, gcs, 6.0)
+        p = truths[-1].position                             # still air: it holds still
+        assert np.linalg.norm(p - truths[0].position) < 1e-3
+        gaps = np.array([[m.x, m.y, m.z] for m in reported]) - p
+        # a random walk of rate * sqrt(t), t ~ 8 s since the start: neither zero nor far
+        assert np.abs(gaps).max() > 0.01 and np.abs(gaps).max() < 8 * rate * np.sqrt(8.0)
+        assert np.abs(np.diff(gaps, axis=0)).max() < 0.07  # it wanders, it does not jump
+        gps = [m for m in gcs.collect(0.3) if m.get_type() == 'GPS_RAW_INT'][-1]
+        assert abs(gps.alt / 1e3 - (VehicleConfig.home[2] - p[2])) < 0.002
+        gcs.close()
+
+
 def test_bad_targets_hold_and_yaw_follows_travel_when_ignored():
     with vehicle() as sim:
         gcs = Gcs(sim.address[1])

@@ -5,6 +5,7 @@ the sample bag, frames rendered by the simulator at known poses, and a target pa
 into a scene through a known homography.
 """
 import subprocess
+import time
 from pathlib import Path
 
 import cv2
@@ -20,7 +21,7 @@ from std_msgs.msg import Bool, Header
 
 from conftest import REPO, wait_for
 from uav_vs.graph import executable, stop
-from uav_vs.onboard_replay import replay_onboard_bag
+from uav_vs.flight.onboard_replay import replay_onboard_bag
 from uav_vs.ros.convert import (bgr_to_compressed, bgr_to_image, msg_to_pose, ns_to_stamp,
                                 polygon_to_array, stamp_to_ns)
 from uav_vs.sim.onboard_scene import OnboardScene
@@ -152,6 +153,20 @@ def level_pose(x: float, y: float, z: float, yaw: float) -> tuple[np.ndarray, np
     return Rotation.from_euler('z', yaw).as_matrix(), np.array([x, y, z])
 
 
+def counted(probe: Probe, publish, before: int) -> int:
+    """Publish a malformed message until the node's `malformed` count passes `before`;
+    the count once it has settled."""
+    def count() -> int:
+        return int(probe.value('malformed') or 0)
+    for _ in range(20):
+        publish()
+        if wait_for(lambda: count() > before, 1.0):
+            break
+    time.sleep(1.0)        # copies still in flight are counted too
+    assert count() > before, f'the node never counted a malformed message: {probe.status}'
+    return count()
+
+
 def test_malformed_images_are_counted_skipped_and_the_node_goes_on(ros_node, processes, cfg):
     proc = processes('homography_pose_node', POSE_NODE_ARGS)
     probe = Probe(ros_node)
@@ -160,16 +175,18 @@ def test_malformed_images_are_counted_skipped_and_the_node_goes_on(ros_node, pro
     good = scene.render(*level_pose(0.0, 0.0, 1.0, 0.0))      # the configured first pose
     wrong_encoding = Image(header=header(0), height=480, width=640, encoding='32FC1', step=2560)
     wrong_encoding.data = bytes(480 * 2560)
-    probe.image.publish(wrong_encoding)
-    probe.image.publish(bgr_to_image(good[:240, :320], header(1)))           # wrong size
     garbage = CompressedImage(header=header(2), format='jpeg')
     garbage.data = b'\xff\xd8 not a jpeg at all'
-    probe.compressed.publish(garbage)
+    # Each topic's first message may be published before the node hears the test's
+    # publisher: sent until counted, the counts below are taken from there.
+    malformed = counted(probe, lambda: probe.image.publish(wrong_encoding), 0)
+    malformed = counted(probe, lambda: probe.compressed.publish(garbage), malformed)
+    probe.image.publish(bgr_to_image(good[:240, :320], header(1)))           # wrong size
     # The same frame on both topics: processed once, the copy is skipped as stale.
     probe.image.publish(bgr_to_image(good, header(3)))
     probe.compressed.publish(bgr_to_compressed(good, header(3)))
-    assert wait_for(lambda: probe.value('stale') == '1' and probe.value('malformed') == '3', 15), \
-        probe.status
+    assert wait_for(lambda: probe.value('stale') == '1'
+                    and probe.value('malformed') == str(malformed + 1), 15), probe.status
     assert list(probe.poses) == [stamp_to_ns(header(3).stamp)]
     p, q = msg_to_pose(probe.poses[stamp_to_ns(header(3).stamp)])
     assert probe.poses[stamp_to_ns(header(3).stamp)].header.frame_id == 'world'

@@ -13,6 +13,7 @@ from uav_vs.vision.ground_config import read_params_file
 from uav_vs.vision.homography import estimate_homography
 from uav_vs.vision.klt import KltTracker
 from uav_vs.vision.onboard_config import SETTINGS, load_onboard_config
+from uav_vs.vision.plane_geometry import REFINERS
 from uav_vs.vision.plane_pose import (KeyframeWarp, PlanePoseEstimator, body_pose, camera_pose,
                                       plane_homography, pose_from_plane_homography)
 
@@ -125,11 +126,13 @@ def run(cfg, frames, params=None):
     return est, [est.update(gray) for gray, _, _ in frames[1:]]
 
 
-def test_flight_position_and_attitude_against_simulator_truth(cfg, flight):
+@pytest.mark.parametrize('refine', REFINERS)
+def test_flight_position_and_attitude_against_simulator_truth(cfg, flight, refine):
     """Position RMSE <= 2 % of the camera height and attitude RMSE <= 1 deg are what the
-    node must show on the bag; the core keeps a margin of 4 on both."""
+    node must show on the bag; the core keeps a margin of 4 on both, with either pose
+    refinement."""
     assert cfg.init_mode == 'pose'
-    est, poses = run(cfg, flight)
+    est, poses = run(cfg, flight, replace(cfg.params, refine=refine))
     assert all(r.ok for r in poses), [r.reason for r in poses if not r.ok][:3]
     pos_err = np.array([np.linalg.norm(r.position - p) for r, (_, _, p) in zip(poses, flight[1:])])
     height = np.array([(p + R @ cfg.camera_to_body[:3, 3])[2] for _, R, p in flight[1:]])
@@ -308,6 +311,7 @@ def test_reference_points_give_the_same_first_homography(cfg, flat_params):
     ('image_quality.min_sharpness', -1.0, ValueError, 'image_quality.min_sharpness'),
     ('relocalise.features', 'akaze', ValueError, 'relocalise.features: expected one of sift, orb'),
     ('relocalise.ratio', 1.5, ValueError, 'relocalise.ratio'),
+    ('pose.refine', 'gn', ValueError, 'pose.refine: expected one of lm, opencv'),
 ])
 def test_bad_parameters_name_themselves(flat_params, key, value, error, words):
     params = {**flat_params, key: value}
@@ -316,6 +320,14 @@ def test_bad_parameters_name_themselves(flat_params, key, value, error, words):
     with pytest.raises(error, match=words.replace('(', r'\(')) as exc:
         load_onboard_config(params)
     assert '\n' not in str(exc.value)
+
+
+def test_opencv_refinement_refuses_a_skewed_camera(flat_params):
+    K = list(flat_params['camera.K'])
+    K[1] = 3.0
+    with pytest.raises(ValueError, match='pose.refine: opencv ignores the skew'):
+        load_onboard_config({**flat_params, 'camera.K': K, 'pose.refine': 'opencv'})
+    assert load_onboard_config({**flat_params, 'camera.K': K, 'pose.refine': 'lm'})
 
 
 def test_bad_reference_points_are_refused(flat_params):

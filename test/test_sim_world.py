@@ -14,7 +14,7 @@ from conftest import REPO
 from uav_vs.sim.ground_scene import GroundScene
 from uav_vs.sim.mavlink_vehicle import MavlinkVehicle, Truth, VehicleConfig
 from uav_vs.sim.onboard_scene import OnboardScene
-from uav_vs.sim.world import SimWorld, VehicleState, vehicle_state
+from uav_vs.sim.world import SimulatedVehicle, SimWorld, VehicleState, vehicle_state
 from uav_vs.vision.body_pose import solve_pose
 from uav_vs.vision.colour_model import models_from_params
 from uav_vs.vision.ground_config import load_ground_config, read_params_file
@@ -30,7 +30,7 @@ ONBOARD = load_onboard_config(read_params_file(REPO / 'config' / 'onboard.yaml')
 @pytest.fixture(scope='module')
 def world():
     vehicle = MavlinkVehicle(VehicleConfig(connection='tcpin:127.0.0.1:0'))
-    world = SimWorld(vehicle, GroundScene(load_ground_config(GROUND)),
+    world = SimWorld(SimulatedVehicle(vehicle), GroundScene(load_ground_config(GROUND)),
                      OnboardScene(ONBOARD.camera, ONBOARD.camera_to_body), onboard_min_height=0.3)
     yield world
     world.close()

@@ -15,7 +15,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from conftest import REPO, wait_for
 from uav_vs.graph import executable
 from uav_vs.ros.convert import image_to_bgr, msg_to_pose, stamp_to_ns, yaw_of
-from uav_vs.scenario import free_port
+from uav_vs.flight.scenario import free_port
 from uav_vs.vision.ground_config import read_params_file
 
 FILES = ['--params-file', str(REPO / 'config' / 'ground_trinocular.yaml'),
@@ -40,6 +40,8 @@ def test_publishes_ground_images_and_truth_of_the_vehicle_at_home(ros_node, proc
     assert image.header.frame_id == info.header.frame_id == 'cam2_optical'
     K = read_params_file(REPO / 'config' / 'ground_trinocular.yaml')['cameras.cam2.K']
     np.testing.assert_allclose(info.k, K)
+    D = read_params_file(REPO / 'config' / 'ground_trinocular.yaml')['cameras.cam2.D']
+    np.testing.assert_allclose(info.d, D)       # rendered through the calibrated lens
     # Every frame's truth carries the frame's stamp; at home it is the world origin,
     # heading north (the autopilot's yaw 0).
     truth = {stamp_to_ns(m.header.stamp): m for m in got['truth']}
@@ -51,11 +53,52 @@ def test_publishes_ground_images_and_truth_of_the_vehicle_at_home(ros_node, proc
     assert got['onboard'] == []            # on the ground, the onboard camera sees nothing
 
 
+def test_switched_on_effects_change_what_is_published(ros_node, processes):
+    """No lens distortion: camera_info has D = 0; calibration error: camera_info keeps
+    the calibration the nodes are given; drops: about the stated fraction of frames is
+    missing; latency: every frame arrives at least latency - jitter after its stamp."""
+    latency, jitter, p_drop = 0.08, 0.02, 0.4
+    proc = processes('sim_world', [*FILES, '-p', f'vehicle.connection:=tcpin:127.0.0.1:{free_port()}',
+                                   '-p', 'onboard.rate:=0.0', '-p', 'distortion.enabled:=false',
+                                   '-p', 'calibration.enabled:=true',
+                                   '-p', 'drops.enabled:=true', '-p', f'drops.probability:={p_drop}',
+                                   '-p', 'latency.enabled:=true', '-p', f'latency.mean:={latency}',
+                                   '-p', f'latency.jitter:={jitter}'])
+    got: dict[str, list] = {'image': [], 'info': [], 'truth': []}
+    clock = ros_node.get_clock()
+    ros_node.create_subscription(Image, '/cam2/image_raw',
+                                 lambda m: got['image'].append((m, clock.now().nanoseconds)),
+                                 qos_profile_sensor_data)
+    ros_node.create_subscription(CameraInfo, '/cam2/camera_info', got['info'].append, 10)
+    ros_node.create_subscription(PoseStamped, '/truth/pose', got['truth'].append, 50)
+    assert wait_for(lambda: len(got['truth']) >= 120, 90), proc.poll()
+
+    assert got['info'] and all(not any(m.d) for m in got['info'])
+    K = read_params_file(REPO / 'config' / 'ground_trinocular.yaml')['cameras.cam2.K']
+    np.testing.assert_allclose(got['info'][-1].k, K)
+    truth = {stamp_to_ns(m.header.stamp) for m in got['truth']}
+    # skip discovery at the start and the frames still in flight at the end
+    first, last = min(truth) + 1_000_000_000, max(truth) - 500_000_000
+    frames = [(m, t) for m, t in got['image'] if first <= stamp_to_ns(m.header.stamp) < last]
+    assert {stamp_to_ns(m.header.stamp) for m, _ in frames} <= truth
+    n = sum(first <= s < last for s in truth)     # frame sets rendered in that span
+    missing = 1 - len(frames) / n
+    assert abs(missing - p_drop) < 4 * math.sqrt(p_drop * (1 - p_drop) / n), (len(frames), n)
+    delays = [(t - stamp_to_ns(m.header.stamp)) * 1e-9 for m, t in frames]
+    assert min(delays) >= latency - jitter, min(delays)
+    # each one as late as its own delay: none held up for seconds (delivery, not speed)
+    assert max(delays) < latency + jitter + 0.5, max(delays)
+
+
 @pytest.mark.parametrize('override, expected', [
     ('ground.background:=nope.jpg', 'ground.background: cannot read'),
     ('onboard.rate:=-1.0', 'onboard.rate: expected a number in [0, 60]'),
     ('vehicle.connection:=tcpin:10.255.255.1:5760', 'vehicle.connection: cannot serve'),
     ('vehicle.autopilot:=betaflight', 'vehicle.autopilot: expected a string (one of ardupilot, px4)'),
+    ('latency.jitter:=0.05', 'latency.jitter: 0.05 s is more than latency.mean 0.03 s'),
+    ('drops.probability:=1.5', 'drops.probability: expected a number in [0, 1]'),
+    ('calibration.angle_sigma:=2.0', 'calibration.angle_sigma: expected a number in [0, 0.5]'),
+    ('wind.gust_sigma:=-0.1', 'wind.gust_sigma: expected a number in [0, 5]'),
 ])
 def test_bad_parameter_stops_it_with_one_line(override, expected):
     run = subprocess.run([executable('sim_world'), '--ros-args', *FILES, '-p', override],
@@ -63,3 +106,14 @@ def test_bad_parameter_stops_it_with_one_line(override, expected):
     assert run.returncode == 2
     fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
     assert len(fatal) == 1 and expected in fatal[0], run.stderr
+
+
+def test_sitl_without_a_sitl_stops_it_with_one_line():
+    port = free_port()
+    run = subprocess.run([executable('sim_world'), '--ros-args', *FILES, '-p', 'vehicle.model:=sitl',
+                          '-p', f'vehicle.sitl_connection:=tcp:127.0.0.1:{port}'],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2
+    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
+    assert len(fatal) == 1 and f'vehicle.sitl_connection: tcp:127.0.0.1:{port}: ' in fatal[0], \
+        run.stderr

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from uav_vs.vision.template_align import (WARPS, AlignParams, InverseCompositional,
-                                          align_ic, align_lk, corner_error)
+                                          align_ic, align_lk, bilinear_warp, corner_error)
 
 ASSETS = Path(__file__).resolve().parents[1] / 'uav_vs' / 'sim' / 'assets'
 X0, Y0, SIDE = 270, 190, 100          # where the template is cut from the photo
@@ -126,3 +126,18 @@ def test_pyramid_extends_the_capture_range(photo, algo):
                                AlignParams(levels=3))
     assert not (single.converged and corner_error(single.M, truth, (SIDE, SIDE)) < 1.0)
     assert pyramid.converged and corner_error(pyramid.M, truth, (SIDE, SIDE)) < 0.05
+
+
+@pytest.mark.parametrize('M', [np.array([[1.02, 0.03, 10.3], [-0.02, 0.99, 7.7], [1e-4, -2e-4, 1]]),
+                               np.array([[1, 0, -3.3], [0, 1, 50.2], [0, 0, 1]])])
+def test_bilinear_warp_is_exact_on_a_plane_and_replicates_the_border(M):
+    """A bilinear sample of a linear image is the plane itself at the exact coordinate
+    (clamped to the image: replicated border), to float32 precision."""
+    ys, xs = np.mgrid[0:60, 0:80]
+    img = (0.7 * xs + 1.3 * ys + 5).astype(np.float32)
+    out = bilinear_warp(img, M, (40, 30))
+    v, u = np.mgrid[0:30, 0:40]
+    p = M @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
+    x, y = np.clip(p[0] / p[2], 0, 79), np.clip(p[1] / p[2], 0, 59)
+    assert out.shape == (30, 40) and out.dtype == np.float32
+    assert np.allclose(out.ravel(), 0.7 * x + 1.3 * y + 5, atol=1e-3)

@@ -3,7 +3,7 @@ import os
 from pathlib import Path
 
 HOW_TO_GET = ('third-party data not found: set UAV_VS_DATA to a folder holding '
-              'oxford/, opencv/ and rosbag2/ (see README, "Test data")')
+              'oxford/, opencv/ and rosbag2/ (see docs/data.md)')
 
 
 def shared_data_dir() -> Path | None:

@@ -4,26 +4,45 @@ sim_world (the MAVLink vehicle and its cameras), three camshift_node and the
 trinocular_pose_node, the homography_pose_node, the fuzzy_controller_node and the
 mavlink_relay_node run as separate processes; the vehicle takes off, holds, flies
 through setpoints on the ground station's pose and lands on a pad on the onboard pose
-(uav_vs.scenario.DEMO). The summary (each pose source against truth, setpoint and
+(uav_vs.flight.scenario.DEMO). The summary (each pose source against truth, setpoint and
 landing errors, latencies) is printed and written to the output folder with the flight
 log (flight.npz), PNG plots and every node's log.
 
+The simulated world's cameras and vehicle have the `realistic` sensor profile
+(config/sensors_realistic.yaml: noise, distortion, motion blur, exposure drift, JPEG
+artefacts, dropped frames, latency, wind gusts, a drifting estimate); `make demo
+SENSORS=ideal` (`--sensors ideal`) switches every effect off but the calibrated lens.
+
+`make demo AUTOPILOT=ardupilot-sitl` (`--autopilot ardupilot-sitl`) flies the same mission
+with ArduCopter SITL as the vehicle (its physics, EKF and GUIDED controller) at real time:
+run as root, it starts the SITL binary (uav_vs.sim.sitl_process) in a loopback-only
+network namespace that the whole graph joins; `SITL=tcp:HOST:PORT` (`--sitl`) attaches
+to a SITL already running instead (the relay on that port, the truth on `--sitl-truth`,
+by default the same host's next SERIAL port, PORT + 2).
+
 `make demo BAG=<bag>` (`--bag`) replays a bag instead (the flight bag a closed-loop run
 records into the output folder, or bags/ground_trinocular, bags/onboard) through the
-open-loop part of the graph (uav_vs.flight_replay) and reports the same way.
+open-loop part of the graph (uav_vs.flight.replay) and reports the same way.
 """
 import argparse
 import os
+import subprocess
 import sys
 from pathlib import Path
 
 from uav_vs.bag.reader import BagError
-from uav_vs.flight_plots import plot_flight
-from uav_vs.flight_recorder import MissionError
-from uav_vs.flight_replay import replay_flight
-from uav_vs.flight_report import FlightLog, FlightReport
-from uav_vs.scenario import SCENARIOS, fly
+from uav_vs.flight.plots import plot_flight
+from uav_vs.flight.recorder import MissionError
+from uav_vs.flight.replay import replay_flight
+from uav_vs.flight.report import FlightLog, FlightReport
+from uav_vs.flight.scenario import SCENARIOS, Configs, SitlLink, fly
+from uav_vs.sim.sitl_process import (HOW_TO_GET, ArduCopterSitl, delete_namespace,
+                                     enter_loopback_namespace, find_binary)
 from uav_vs.vision.ground_config import default_config_path
+
+AUTOPILOTS = ('ardupilot', 'px4', 'ardupilot-sitl')
+SENSORS = ('realistic', 'ideal')     # config/sensors_<profile>.yaml
+SITL_STARTUP_S = 120.0    # ArduCopter SITL is ready to arm ~45 s after its start (GPS, EKF3)
 
 
 def replay(bag: Path, out: Path, rate: float) -> int:
@@ -37,13 +56,54 @@ def replay(bag: Path, out: Path, rate: float) -> int:
     return report(log, out)
 
 
-def closed_loop(scenario_name: str, out: Path, autopilot: str) -> int:
-    """Fly a scenario (recording its bag into out/bag); print and save the summary and plots."""
+def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
+                sitl: SitlLink | None = None) -> int:
+    """Fly a scenario (recording its bag into out/bag) with the `sensors` profile; print
+    and save the summary and plots."""
     scenario = SCENARIOS[scenario_name]
-    print(f'closed loop: scenario {scenario.name}, sim_world ({autopilot}) + 3 camshift_node + '
-          'trinocular_pose_node + homography_pose_node + fuzzy_controller_node + '
-          f'mavlink_relay_node, recorded to {out}/bag (logs in {out}/logs/)', flush=True)
-    return report(fly(scenario, out, autopilot=autopilot), out)
+    vehicle = f'ArduCopter SITL on {sitl.relay}' if sitl else f'simulated {autopilot}'
+    profile = default_config_path(f'sensors_{sensors}.yaml')
+    print(f'closed loop: scenario {scenario.name}, {sensors} sensors ({profile.name}), '
+          f'sim_world ({vehicle}) + 3 camshift_node + trinocular_pose_node + '
+          'homography_pose_node + fuzzy_controller_node + mavlink_relay_node, recorded to '
+          f'{out}/bag (logs in {out}/logs/)', flush=True)
+    return report(fly(scenario, out, Configs(sensors=profile), autopilot=autopilot, sitl=sitl,
+                      startup_timeout=SITL_STARTUP_S if sitl else 90.0), out)
+
+
+def sitl_closed_loop(scenario_name: str, out: Path, sensors: str, attach: str | None,
+                     truth: str | None) -> int:
+    """The closed loop on ArduCopter SITL: attached to `attach`, or started here."""
+    if attach:
+        return closed_loop(scenario_name, out, 'ardupilot', sensors,
+                           SitlLink(attach, truth or next_serial_port(attach)))
+    binary = find_binary()
+    if binary is None:
+        print(f'no ArduCopter SITL: {HOW_TO_GET}', file=sys.stderr)
+        return 2
+    namespace = f'uavvs_demo_{os.getpid()}'
+    try:
+        enter_loopback_namespace(namespace)
+    except (PermissionError, OSError, subprocess.CalledProcessError) as err:
+        print(f'cannot start SITL: {err}', file=sys.stderr)
+        return 2
+    try:
+        with ArduCopterSitl(binary, out / 'sitl') as sitl:
+            relay, serial1, _ = sitl.serial_ports
+            print(f'ArduCopter SITL {binary} started in network namespace {namespace} '
+                  f'(log {sitl.log_path})', flush=True)
+            return closed_loop(scenario_name, out, 'ardupilot', sensors,
+                               SitlLink(f'tcp:127.0.0.1:{relay}', f'tcp:127.0.0.1:{serial1}'))
+    finally:
+        delete_namespace(namespace)
+
+
+def next_serial_port(connection: str) -> str:
+    """tcp:HOST:PORT -> tcp:HOST:PORT+2, SITL's SERIAL1 beside its SERIAL0."""
+    head, _, port = connection.rpartition(':')
+    if not port.isdigit():
+        raise SystemExit(f'--sitl {connection}: expected tcp:HOST:PORT')
+    return f'{head}:{int(port) + 2}'
 
 
 def report(log: FlightLog, out: Path) -> int:
@@ -66,9 +126,17 @@ def main(argv: list[str] | None = None) -> int:
                         help='bag replay speed (1 = recorded)')
     parser.add_argument('--scenario', default='demo', choices=sorted(SCENARIOS),
                         help='closed-loop scenario (default %(default)s)')
-    parser.add_argument('--autopilot', default='ardupilot', choices=('ardupilot', 'px4'),
-                        help="whose MAVLink behaviour the simulated vehicle follows "
+    parser.add_argument('--autopilot', default='ardupilot', choices=AUTOPILOTS,
+                        help="whose MAVLink behaviour the simulated vehicle follows, or "
+                             "ardupilot-sitl: ArduCopter SITL is the vehicle "
                              "(default %(default)s)")
+    parser.add_argument('--sensors', default='realistic', choices=SENSORS,
+                        help="the simulated world's sensor profile, config/sensors_<profile>"
+                             '.yaml (default %(default)s)')
+    parser.add_argument('--sitl', help='with ardupilot-sitl: the connection of a SITL already '
+                        'running, for the relay (e.g. tcp:127.0.0.1:5760); default: start one')
+    parser.add_argument('--sitl-truth', help="that SITL's port for the SIM_STATE truth "
+                        '(default: --sitl PORT + 2)')
     parser.add_argument('--out', type=Path, help='output folder (default demo-output, '
                         'demo-output/replay with --bag)')
     args = parser.parse_args(argv)
@@ -80,7 +148,9 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if args.bag is not None:
         return replay(args.bag, out, args.rate)
-    return closed_loop(args.scenario, out, args.autopilot)
+    if args.autopilot == 'ardupilot-sitl':
+        return sitl_closed_loop(args.scenario, out, args.sensors, args.sitl, args.sitl_truth)
+    return closed_loop(args.scenario, out, args.autopilot, args.sensors)
 
 
 if __name__ == '__main__':

@@ -23,13 +23,16 @@ def executable(name: str) -> str:
 
 def start(name: str, ros_args: list[str], log_dir: Path, label: str | None = None,
           env: dict[str, str] | None = None, args: list[str] = ()) -> subprocess.Popen:
-    """Start `name args --ros-args ros_args`, stdout and stderr to log_dir/<label>.log."""
+    """Start `name args --ros-args ros_args`, stdout and stderr to log_dir/<label>.log
+    (the process's `log_path`)."""
     log_dir.mkdir(parents=True, exist_ok=True)
-    log = open(log_dir / f'{label or name}.log', 'wb')
+    path = log_dir / f'{label or name}.log'
+    log = open(path, 'wb')
     argv = [executable(name), *args, *(['--ros-args', *ros_args] if ros_args else [])]
     proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
                             env={**os.environ, **(env or {})})
     log.close()
+    proc.log_path = path
     return proc
 
 
@@ -45,3 +48,14 @@ def stop(procs: list[subprocess.Popen], timeout: float = 5.0) -> list[int]:
             except subprocess.TimeoutExpired:
                 pass
     return [p.returncode for p in procs]
+
+
+def failed_logs(procs: dict[str, subprocess.Popen], lines: int = 25) -> dict[str, str]:
+    """The last `lines` of the log of every stopped process whose status is not 0."""
+    return {label: _tail(p.log_path, lines) for label, p in procs.items()
+            if p.returncode not in (None, 0)}
+
+
+def _tail(path: Path, lines: int) -> str:
+    text = path.read_text(errors='replace') if path.exists() else ''
+    return '\n'.join([f'{path}:', *text.splitlines()[-lines:]])

@@ -108,13 +108,18 @@ def quat_to_euler(q: np.ndarray) -> tuple:
     return roll, pitch, yaw
 
 
-def attitude_ned_to_enu(roll, pitch, yaw) -> np.ndarray:
-    """MAVLink ATTITUDE (FRD body in NED) -> quaternion of base_link FLU in world ENU.
+def quat_ned_to_enu(q_ned_frd: np.ndarray) -> np.ndarray:
+    """Quaternion (x, y, z, w) of the FRD body in NED -> of base_link FLU in world ENU.
 
     q_enu_flu = q_enu_ned * q_ned_frd * q_frd_flu, sign chosen so that w >= 0.
     """
-    q = quat_multiply(quat_multiply(Q_ENU_NED, euler_to_quat(roll, pitch, yaw)), Q_FRD_FLU)
+    q = quat_multiply(quat_multiply(Q_ENU_NED, q_ned_frd), Q_FRD_FLU)
     return q * np.where(q[..., 3:] < 0, -1.0, 1.0)
+
+
+def attitude_ned_to_enu(roll, pitch, yaw) -> np.ndarray:
+    """MAVLink ATTITUDE (FRD body in NED) -> quaternion of base_link FLU in world ENU."""
+    return quat_ned_to_enu(euler_to_quat(roll, pitch, yaw))
 
 
 def attitude_enu_to_ned(q_enu_flu: np.ndarray) -> tuple:
@@ -149,3 +154,33 @@ def pose_covariance_enu_to_ned(cov: np.ndarray) -> np.ndarray:
     j[:3, :3] = R_ENU_NED
     j[3:, 3:] = R_FLU_FRD
     return j @ np.asarray(cov, dtype=float) @ j.T
+
+
+def pose_covariance_ned_to_enu(cov: np.ndarray) -> np.ndarray:
+    """6x6 pose covariance from NED/FRD to ENU/FLU: the same J C J^T, J being an involution."""
+    return pose_covariance_enu_to_ned(cov)
+
+
+def covariance_from_upper(upper) -> np.ndarray | None:
+    """MAVLink's 21-float upper right triangle (row-major, ODOMETRY) as a symmetric 6x6
+    matrix; None when its first element is NaN (unknown); other NaN entries (not
+    reported) become 0."""
+    upper = np.asarray(upper, dtype=float)
+    if upper.shape != (21,) or np.isnan(upper[0]):
+        return None
+    cov = np.zeros((6, 6))
+    cov[np.triu_indices(6)] = np.nan_to_num(upper, nan=0.0)
+    return cov + np.triu(cov, 1).T
+
+
+def velocity_covariance_to_flu(cov: np.ndarray, frame: str, q_enu_flu: np.ndarray) -> np.ndarray:
+    """3x3 linear velocity covariance in base_link FLU, from MAVLink's `frame`: 'local_ned'
+    (world NED axes, rotated into the body with the attitude q_enu_flu) or 'body_frd'."""
+    if frame == 'body_frd':
+        return R_FLU_FRD @ cov @ R_FLU_FRD.T
+    x, y, z, w = np.asarray(q_enu_flu, dtype=float)
+    r_enu_flu = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                          [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                          [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    to_flu = r_enu_flu.T @ R_ENU_NED
+    return to_flu @ cov @ to_flu.T

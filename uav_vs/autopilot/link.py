@@ -1,11 +1,15 @@
-"""MAVLink 2 through pymavlink: dialect, connections and signing keys.
+"""MAVLink 2 through pymavlink: dialect, connections, signing keys and signature checks.
 
 Importing this module selects MAVLink 2 (signing needs it) and the ardupilotmega
 dialect (a superset of common, so it speaks to PX4 too) before any connection is
 made; the relay session and the simulated vehicle both go through it.
 """
 import hashlib
+import hmac
 import os
+import socket
+import stat
+import types
 from pathlib import Path
 
 os.environ['MAVLINK20'] = '1'
@@ -27,16 +31,86 @@ VELOCITY_IGNORE = (mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE | mavlink.POSITION
 
 FORCE_DISARM = 21196  # MAV_CMD_COMPONENT_ARM_DISARM param2 that overrides the in-flight check
 
+# A new signed stream may start at most this far behind our own signing timestamp
+# (10 us units: one minute), as the MAVLink signing specification says.
+NEW_STREAM_WINDOW = 6_000_000
+# Why pymavlink dropped a frame as 'Invalid signature' (see rejection_cause).
+UNSIGNED, BAD_SIGNATURE, OLD_TIMESTAMP = 'unsigned', 'bad_signature', 'old_timestamp'
+
 
 def open_connection(device: str, baud: int = 115200, source_system: int = 255,
                     source_component: int = mavlink.MAV_COMP_ID_MISSIONPLANNER) -> mavutil.mavfile:
     """A pymavlink connection: udpin:/udpout:/udp:HOST:PORT, tcp:HOST:PORT, tcpin:, or a serial device.
 
     A TCP client tries once (no blocking retry loop); the caller decides when to retry.
+    A host name that does not resolve raises socket.gaierror, for udpout: too (pymavlink
+    would open it and then drop every datagram without a word).
     """
-    return mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
-                                      source_component=source_component, retries=0,
-                                      autoreconnect=False)
+    if device.startswith('udpout:'):
+        host, _, port = device.removeprefix('udpout:').rpartition(':')
+        socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)
+    return verify_signatures_first(mavutil.mavlink_connection(
+        device, baud=baud, source_system=source_system, source_component=source_component,
+        retries=0, autoreconnect=False))
+
+
+def verify_signatures_first(conn: mavutil.mavfile) -> mavutil.mavfile:
+    """Make `conn` verify a signed frame's signature before it changes any signing state.
+
+    pymavlink's MAVLink.check_signature records a frame's timestamp as the newest of its
+    (link id, system, component) stream before it compares the signature. One forged
+    frame carrying a peer's ids and a future timestamp, made without the key, then makes
+    every genuine frame of that peer look like a replay for as long as the connection
+    lives. MAVLink.decode() calls check_signature through the instance, so this
+    connection's parser gets `_check_signature` instead; the library stays as it is for
+    everyone else. Returns `conn`.
+    """
+    conn.mav.check_signature = types.MethodType(_check_signature, conn.mav)
+    return conn
+
+
+def _check_signature(mav, msgbuf: bytearray, src_system: int, src_component: int) -> bool:
+    """The MAVLink signing rules, in an order a forged frame cannot exploit.
+
+    The signature first (a frame that fails changes nothing); then the frame must be
+    newer than the last one accepted from its (link id, system, component) stream, or,
+    first of its stream, at most NEW_STREAM_WINDOW behind our own timestamp. Only then
+    is its timestamp recorded, and ours raised to it.
+    """
+    signing = mav.signing
+    if not signature_matches(signing.secret_key, msgbuf):
+        return False
+    timestamp = int.from_bytes(msgbuf[-12:-6], 'little')
+    stream = (msgbuf[-13], src_system, src_component)
+    last = signing.stream_timestamps.get(stream)
+    if last is not None and timestamp <= last:
+        return False   # not newer than its stream: a replay
+    if last is None and timestamp + NEW_STREAM_WINDOW < signing.timestamp:
+        return False   # a new stream, but over a minute old
+    signing.stream_timestamps[stream] = timestamp
+    signing.timestamp = max(signing.timestamp, timestamp)
+    return True
+
+
+def is_signed(frame: bytes) -> bool:
+    """Whether a raw frame is MAVLink 2 with a signature block (header incompat flag)."""
+    return (len(frame) > 2 and frame[0] == mavlink.PROTOCOL_MARKER_V2
+            and bool(frame[2] & mavlink.MAVLINK_IFLAG_SIGNED))
+
+
+def signature_matches(key: bytes, frame: bytes) -> bool:
+    """Whether a signed raw frame's 48-bit signature is the one `key` makes."""
+    expected = hashlib.sha256(key + bytes(frame[:-6])).digest()[:6]
+    return hmac.compare_digest(expected, bytes(frame[-6:]))
+
+
+def rejection_cause(key: bytes, frame: bytes) -> str:
+    """Why pymavlink dropped a raw frame as 'Invalid signature' on a link signed with `key`:
+    UNSIGNED (no signature where one is required), BAD_SIGNATURE (made with another key,
+    or forged) or OLD_TIMESTAMP (our key, but not newer than its stream: a replay)."""
+    if not is_signed(frame):
+        return UNSIGNED
+    return OLD_TIMESTAMP if signature_matches(key, frame) else BAD_SIGNATURE
 
 
 def load_signing_key(path: str | Path) -> bytes:
@@ -59,3 +133,13 @@ def load_signing_key(path: str | Path) -> bytes:
         raise ValueError(f'signing key file {path} is empty')
     return hashlib.sha256(text.encode()).digest()
 
+
+def key_file_exposure(path: str | Path) -> str | None:
+    """What is wrong with a key file that group or others may read or write (as ssh checks
+    its private keys), or None. Anyone who can read the key can command the vehicle."""
+    mode = stat.S_IMODE(Path(path).stat().st_mode)
+    who = [name for name, bits in (('group', 0o070), ('others', 0o007)) if mode & bits]
+    if not who:
+        return None
+    return (f'signing key file {path} is accessible by {" and ".join(who)} (mode {mode:04o}); '
+            f'anyone who can read it can command the vehicle: chmod 600 {path}')

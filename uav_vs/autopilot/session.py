@@ -7,7 +7,9 @@ Threading: one background thread owns the link. It parses every incoming message
 sends the GCS heartbeat (1 Hz), re-streams the current setpoint, runs the command
 and link watchdogs and reconnects. The public methods are thread-safe.
 `send_velocity()` validates, limits, converts and writes its
-SET_POSITION_TARGET_LOCAL_NED at once from the caller's thread (lowest latency);
+SET_POSITION_TARGET_LOCAL_NED at once from the caller's thread (lowest latency), unless
+that would exceed max_send_rate (a token bucket of SEND_BURST setpoints): then the
+thread writes the newest command when the next token comes;
 blocking calls (`arm`, `takeoff`, ...) wait on a condition that the thread signals.
 The watchdogs run whatever the caller does: a stalled ROS executor still ends in a
 hover, never in its last command streamed on and on.
@@ -18,6 +20,7 @@ conversion goes through `frames`.
 import collections
 import logging
 import math
+import socket
 import threading
 import time
 from dataclasses import dataclass, field, replace
@@ -26,8 +29,8 @@ from enum import Enum
 import numpy as np
 
 from . import frames
-from .link import (FORCE_DISARM, VELOCITY_YAW_RATE_MASK, load_signing_key, mavlink, mavutil,
-                   open_connection)
+from .link import (BAD_SIGNATURE, FORCE_DISARM, OLD_TIMESTAMP, UNSIGNED, VELOCITY_YAW_RATE_MASK,
+                   load_signing_key, mavlink, mavutil, open_connection, rejection_cause)
 
 log = logging.getLogger(__name__)
 
@@ -41,12 +44,31 @@ VELOCITY_MODE = {ARDUPILOT: 'GUIDED', PX4: 'OFFBOARD'}
 BODY_FRAME = {ARDUPILOT: mavlink.MAV_FRAME_BODY_OFFSET_NED, PX4: mavlink.MAV_FRAME_BODY_NED}
 _LANDING_MODES = ('LAND',)
 _UNSIGNED_OK = frozenset({mavlink.MAVLINK_MSG_ID_RADIO_STATUS})  # telemetry radios never sign
+# What frames dropped for their signature say while no vehicle is heard, most telling first.
+_REJECTED = {
+    BAD_SIGNATURE: 'frames rejected: bad signature (wrong key?)',
+    OLD_TIMESTAMP: 'frames rejected: signing timestamp not newer than before (replayed?)',
+    UNSIGNED: 'frames rejected: unsigned (the vehicle does not sign: install_signing_key '
+              'with signing_required false)'}
 # Ready to arm on ArduPilot Copter, besides the SYS_STATUS pre-arm bit (see prearm_reasons).
 EKF_READY_FLAGS = mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_PRED_POS_HORIZ_ABS   # 0x10 | 0x200
 GPS_READY_FIX = mavlink.GPS_FIX_TYPE_3D_FIX
 # Telemetry only ArduPilot's readiness check reads: PX4 has no EKF_STATUS_REPORT (an
 # ardupilotmega message), and its GPS requirement is part of its own pre-arm checks.
 _ARDUPILOT_ONLY = frozenset({'EKF_STATUS_REPORT', 'GPS_RAW_INT'})
+# ... and only PX4's: ODOMETRY, the one message carrying its estimate's covariances (PX4
+# streams it when asked; ArduPilot does not send it).
+_PX4_ONLY = frozenset({'ODOMETRY'})
+# ODOMETRY's velocity frame (child_frame_id) -> frames.velocity_covariance_to_flu's name.
+_VELOCITY_FRAMES = {mavlink.MAV_FRAME_LOCAL_NED: 'local_ned',
+                    mavlink.MAV_FRAME_LOCAL_FRD: 'local_ned',
+                    mavlink.MAV_FRAME_BODY_FRD: 'body_frd'}
+# A connection that cannot be opened is retried every second, and said again this often [s].
+OPEN_WARNING_PERIOD = 10.0
+# Setpoints that may leave back to back before max_send_rate holds them: a controller
+# streaming near that rate with ordinary jitter never waits, a burst is cut to the rate.
+SEND_BURST = 3
+FLOAT32_MAX = float(np.finfo(np.float32).max)   # MAVLink floats: larger ones cannot be sent
 # A refusal's reason: STATUSTEXT from the command's first send until this long after its ACK [s].
 _REASON_GRACE = 0.3
 
@@ -71,12 +93,14 @@ class AutopilotError(RuntimeError):
 class CommandError(AutopilotError):
     """A COMMAND_LONG refused (result is a MAV_RESULT) or never acknowledged (result None)."""
 
-    def __init__(self, command: int, result: int | None, statustext: list[str]):
+    def __init__(self, command: int, result: int | None, statustext: list[str],
+                 hint: str | None = None):
         self.command, self.result, self.statustext = command, result, statustext
         name = _enum_name('MAV_CMD', command)
         what = f'refused: {_enum_name("MAV_RESULT", result)}' if result is not None else 'no COMMAND_ACK'
         said = f"; autopilot says: {' | '.join(statustext)}" if statustext else ''
-        super().__init__(f'{name} {what}{said}')
+        why = f': {hint}' if hint else ''
+        super().__init__(f'{name} {what}{why}{said}')
 
 
 def _enum_name(enum: str, value: int) -> str:
@@ -95,6 +119,14 @@ class Limits:
     fence_max: tuple[float, float, float] | None = None  # components slowed down near its faces
     fence_approach: float = 1.5  # [s] outward speed <= distance to the face / this
 
+    def __post_init__(self):
+        for name in ('max_speed', 'max_climb', 'max_descent', 'max_yaw_rate'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f'{name} must be a finite number >= 0, got {value}')
+        if not (math.isfinite(self.fence_approach) and self.fence_approach > 0.0):
+            raise ValueError(f'fence_approach must be a finite number > 0, got {self.fence_approach}')
+
 
 @dataclass(frozen=True)
 class SessionConfig:
@@ -105,8 +137,10 @@ class SessionConfig:
     target_system: int = 0                  # 0: the first vehicle heard
     rates: dict = field(default_factory=lambda: {  # telemetry requested [Hz]
         'LOCAL_POSITION_NED': 20.0, 'ATTITUDE': 20.0, 'GLOBAL_POSITION_INT': 5.0, 'SYS_STATUS': 1.0,
-        'EKF_STATUS_REPORT': 1.0, 'GPS_RAW_INT': 1.0})   # the last two: ArduPilot only
+        'EKF_STATUS_REPORT': 1.0, 'GPS_RAW_INT': 1.0,    # these two: ArduPilot only
+        'ODOMETRY': 20.0})                               # PX4 only
     stream_rate: float = 10.0               # setpoint re-send rate [Hz] (PX4 needs > 2)
+    max_send_rate: float = 50.0             # setpoints written at most this often [Hz]
     command_timeout: float = 0.5            # input older than this -> hover [s]
     link_timeout: float = 3.0               # no HEARTBEAT for this -> link lost [s]
     ack_timeout: float = 1.0                # per COMMAND_LONG try [s]
@@ -129,6 +163,10 @@ class Telemetry:
     latitude: float | None = None                 # [deg]
     longitude: float | None = None                # [deg]
     altitude: float | None = None                 # AMSL [m]
+    # ROS covariances (ODOMETRY, PX4): pose in world ENU / base_link FLU rotations, twist
+    # in base_link FLU; entries the autopilot does not report are 0.
+    pose_covariance: np.ndarray | None = None     # 6x6
+    twist_covariance: np.ndarray | None = None    # 6x6
 
 
 @dataclass(frozen=True)
@@ -145,10 +183,16 @@ class Status:
     battery_voltage: float | None    # [V]
     heartbeat_age: float | None      # [s]
     reconnects: int
-    signing: bool                    # outgoing messages signed
-    vehicle_signs: bool              # last vehicle HEARTBEAT was signed
-    rejected: int                    # incoming messages dropped for a missing or bad signature
+    signing: bool                    # we hold a key: outgoing messages signed
+    vehicle_signs: bool              # the last vehicle HEARTBEAT carried a signature
+    rejected_unsigned: int           # incoming frames dropped: unsigned, signing required
+    rejected_bad_signature: int      # dropped: signature not made with our key (wrong key, forged)
+    rejected_old_timestamp: int      # dropped: our key, but not newer than its stream (replayed)
+    signing_problem: str | None      # what stops signed communication, in plain words
     statustext: tuple[str, ...]      # the autopilot's latest STATUSTEXT, newest last
+    held: int                        # commands that waited for a send token (max_send_rate)
+    coalesced: int                   # of those, replaced by a newer one before they were sent
+    link_reason: str                 # why the connection cannot be opened ('' when it is open)
 
 
 def prearm_reasons(autopilot: str | None, prearm_bit: bool | None, ekf_flags: int | None,
@@ -181,15 +225,62 @@ def prearm_reasons(autopilot: str | None, prearm_bit: bool | None, ekf_flags: in
     return reasons
 
 
+def statustext_level(severity: int) -> int:
+    """The logging level of a STATUSTEXT severity: EMERGENCY to ERROR (ArduPilot's
+    'PreArm:' refusals are CRITICAL) log as ERROR, WARNING as WARNING, NOTICE and INFO as
+    INFO, DEBUG as DEBUG."""
+    if severity <= mavlink.MAV_SEVERITY_ERROR:
+        return logging.ERROR
+    if severity == mavlink.MAV_SEVERITY_WARNING:
+        return logging.WARNING
+    return logging.INFO if severity <= mavlink.MAV_SEVERITY_INFO else logging.DEBUG
+
+
+def open_failure(connection: str, err: Exception) -> str:
+    """Why `connection` could not be opened, naming a host that does not resolve."""
+    if isinstance(err, socket.gaierror):
+        host = connection.split(':', 1)[-1].rpartition(':')[0]
+        return f'cannot open {connection}: host {host!r} does not resolve ({err.strerror})'
+    return f'cannot open {connection}: {err}'
+
+
 def limit_velocity(v: tuple[float, float, float], yaw_rate: float,
                    limits: Limits) -> tuple[tuple[float, float, float], float]:
-    """Scale horizontal speed to max_speed (direction kept), clamp climb/descent and yaw rate."""
-    x, y, z = v
-    speed = math.hypot(x, y)
-    if speed > limits.max_speed:
-        x, y = x * limits.max_speed / speed, y * limits.max_speed / speed
+    """Scale horizontal speed to max_speed (direction kept), clamp climb/descent and yaw rate.
+
+    Finite for any finite input, 1e308 and subnormals included (no intermediate
+    overflows); ValueError for a non-finite one.
+    """
+    x, y, z = _finite(v, 'velocity command')
+    (yaw_rate,) = _finite((yaw_rate,), 'yaw rate command')
+    x, y = clip_norm(x, y, limits.max_speed)
     z = min(max(z, -limits.max_descent), limits.max_climb)
-    return (x, y, z), min(max(yaw_rate, -limits.max_yaw_rate), limits.max_yaw_rate)
+    yaw_rate = min(max(yaw_rate, -limits.max_yaw_rate), limits.max_yaw_rate)
+    return _finite((x, y, z), 'limited velocity'), yaw_rate
+
+
+def clip_norm(x: float, y: float, limit: float) -> tuple[float, float]:
+    """(x, y) scaled down to norm `limit` if longer, direction kept.
+
+    Divided by its largest component first, the vector has norm in [1, sqrt 2], so
+    neither the norm nor the scaling can overflow, however large x and y are.
+    """
+    m = max(abs(x), abs(y))
+    if m == 0.0:
+        return x, y
+    ux, uy = x / m, y / m
+    n = math.hypot(ux, uy)
+    if m <= limit / n:
+        return x, y
+    return ux * (limit / n), uy * (limit / n)
+
+
+def _finite(values, what: str) -> tuple[float, ...]:
+    """`values` as floats; ValueError naming `what` unless every one is finite."""
+    values = tuple(map(float, values))
+    if not all(map(math.isfinite, values)):
+        raise ValueError(f'{what} is not finite: {list(values)}')
+    return values
 
 
 def fence_velocity(v_world: np.ndarray, position: np.ndarray | None, lo, hi,
@@ -198,24 +289,39 @@ def fence_velocity(v_world: np.ndarray, position: np.ndarray | None, lo, hi,
     distance from `position` to that face over `approach` seconds: the vehicle slows as
     it nears a face (a first-order approach, so a velocity loop several times faster
     than `approach` stops short of it) and never moves outward on or beyond it.
-    Inward components are untouched.
+    Inward components are untouched, so no component ever grows.
 
-    Without a position estimate nothing can be checked, so the result is zero (hover).
+    Without a finite position estimate nothing can be checked, so the result is zero
+    (hover), as it is for a non-finite velocity.
     """
-    if position is None:
+    v = np.asarray(v_world, dtype=float)
+    if position is None or not np.isfinite(position).all() or not np.isfinite(v).all():
         return np.zeros(3)
     p = np.asarray(position, dtype=float)
-    up = np.maximum(np.asarray(hi) - p, 0.0) / approach
-    down = np.maximum(p - np.asarray(lo), 0.0) / approach
-    return np.clip(np.asarray(v_world, dtype=float), -down, up)
+    with np.errstate(over='ignore'):
+        up = np.maximum(np.asarray(hi) - p, 0.0) / approach
+        down = np.maximum(p - np.asarray(lo), 0.0) / approach
+    return np.clip(v, -down, up)
+
+
+# SessionConfig fields Session.reconfigure may replace while running.
+RECONFIGURABLE = frozenset({'limits', 'stream_rate', 'max_send_rate', 'command_timeout',
+                            'link_timeout', 'ack_timeout', 'command_retries'})
+
+
+def _check_rates(config: SessionConfig) -> None:
+    if config.stream_rate <= 2.0:
+        raise ValueError(f'stream_rate must be above 2 Hz (PX4 needs it), got {config.stream_rate}')
+    if not config.max_send_rate >= config.stream_rate:
+        raise ValueError(f'max_send_rate must be at least stream_rate ({config.stream_rate} Hz), '
+                         f'got {config.max_send_rate}')
 
 
 class Session:
     """MAVLink session: call start(), then the commands below; close() when done."""
 
     def __init__(self, config: SessionConfig):
-        if config.stream_rate <= 2.0:
-            raise ValueError(f'stream_rate must be above 2 Hz (PX4 needs it), got {config.stream_rate}')
+        _check_rates(config)
         self.config = config
         self._key = load_signing_key(config.signing_key_file) if config.signing_key_file else None
         self._cond = threading.Condition()
@@ -225,6 +331,8 @@ class Session:
         self._conn = None
         self._opened_at = 0.0
         self._next_open = 0.0
+        self._open_error = ''
+        self._next_open_warning = 0.0
         self._peer_closed = False
         self._link = LinkState.CONNECTING
         self._reconnects = 0
@@ -234,8 +342,10 @@ class Session:
         self._armed = False
         self._prearm_bit = self._ekf_flags = self._gps_fix = self._battery = None
         self._last_hb = None
-        self._vehicle_signs = False
-        self._rejected = 0
+        self._vehicle_signs = False        # the last HEARTBEAT carried a signature
+        self._heartbeat_verified = False   # ... made with our key
+        self._rejected = dict.fromkeys((UNSIGNED, BAD_SIGNATURE, OLD_TIMESTAMP), 0)
+        self._rejected_at: dict[str, float] = {}   # cause -> time.monotonic() of the latest
         self._texts = collections.deque(maxlen=20)   # (monotonic time, text)
         self._acks: dict[int, int] = {}
         self._waiting: set[int] = set()
@@ -247,12 +357,17 @@ class Session:
         self._setpoint = ((0.0, 0.0, 0.0), 0.0, False)   # ENU/FLU velocity, yaw rate, body?
         self._last_command = 0.0
         self._next_setpoint = 0.0
+        self._send_credit = float(SEND_BURST)   # setpoints that may be written now
+        self._credit_at = time.monotonic()      # when the credit was last refilled
+        self._unsent = False                # the newest command waits for its send slot
+        self._held = 0                      # commands that waited for a send token
+        self._coalesced = 0                 # commands replaced by a newer one before sending
         self._handlers = {
             'HEARTBEAT': self._on_heartbeat, 'COMMAND_ACK': self._on_ack,
             'STATUSTEXT': self._on_statustext, 'LOCAL_POSITION_NED': self._on_local_position,
             'ATTITUDE': self._on_attitude, 'GLOBAL_POSITION_INT': self._on_global_position,
             'SYS_STATUS': self._on_sys_status, 'EKF_STATUS_REPORT': self._on_ekf_status,
-            'GPS_RAW_INT': self._on_gps_raw}
+            'GPS_RAW_INT': self._on_gps_raw, 'ODOMETRY': self._on_odometry}
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> 'Session':
@@ -260,6 +375,8 @@ class Session:
         return self
 
     def close(self) -> None:
+        with self._cond:   # a command waiting for its send slot still goes out
+            self._cond.wait_for(lambda: not self._unsent_waiting(), 2.0 / self.config.max_send_rate)
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(timeout=2.0)
@@ -271,6 +388,21 @@ class Session:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    def reconfigure(self, **changes) -> None:
+        """Replace settings of RECONFIGURABLE while running (limits, timeouts, rates):
+        checked as at start, then swapped in one piece under the session's lock, so a
+        command is limited and timed by the old settings or the new ones, never a mix.
+        Raises ValueError (nothing changed) for another field or a bad value."""
+        fixed = set(changes) - RECONFIGURABLE
+        if fixed:
+            raise ValueError(f'cannot be changed while running: {", ".join(sorted(fixed))}')
+        config = replace(self.config, **changes)
+        _check_rates(config)
+        with self._cond:
+            self.config = config
+            v, yaw_rate, body = self._setpoint     # the one re-streamed obeys the new limits
+            self._setpoint = (*limit_velocity(v, yaw_rate, config.limits), body)
 
     # ---------------------------------------------------------------- state
     def status(self) -> Status:
@@ -287,8 +419,12 @@ class Session:
                 battery_voltage=self._battery,
                 heartbeat_age=None if self._last_hb is None else now - self._last_hb,
                 reconnects=self._reconnects, signing=self._key is not None,
-                vehicle_signs=self._vehicle_signs, rejected=self._rejected,
-                statustext=tuple(text for _, text in self._texts))
+                vehicle_signs=self._vehicle_signs, rejected_unsigned=self._rejected[UNSIGNED],
+                rejected_bad_signature=self._rejected[BAD_SIGNATURE],
+                rejected_old_timestamp=self._rejected[OLD_TIMESTAMP],
+                signing_problem=self._signing_problem(now),
+                statustext=tuple(text for _, text in self._texts), held=self._held, coalesced=self._coalesced,
+                link_reason=self._open_error if self._conn is None else '')
 
     def telemetry(self) -> Telemetry:
         with self._cond:
@@ -307,24 +443,33 @@ class Session:
         rate about z-up [rad/s].
 
         Limited, then sent at once and re-streamed until the next call; after
-        command_timeout without a call, zero is streamed (hover). Returns False, sending
-        nothing, while the link is down or a takeoff/landing holds commands. Raises
-        ValueError for a command that is not three finite numbers and a finite yaw rate.
+        command_timeout without a call, zero is streamed (hover). At most max_send_rate
+        setpoints are written per second, SEND_BURST back to back: a command arriving when
+        that is used up waits for the next token (at most one interval), and a newer
+        command replaces it meanwhile (counted as coalesced), so the newest is always the
+        one flown.
+        Returns False, sending nothing, while the link is down or a takeoff/landing holds
+        commands. Raises ValueError for a command that is not three finite numbers and a
+        finite yaw rate.
         """
-        v, yaw_rate = tuple(map(float, linear)), float(yaw_rate)
+        v = tuple(linear)
         if len(v) != 3:
             raise ValueError(f'velocity command needs 3 components, got {len(v)}')
-        if not all(map(math.isfinite, (*v, yaw_rate))):
-            raise ValueError(f'velocity command is not finite: {list(v)}, yaw rate {yaw_rate}')
-        v, yaw_rate = limit_velocity(v, yaw_rate, self.config.limits)
         with self._cond:
+            v, yaw_rate = limit_velocity(v, yaw_rate, self.config.limits)
             if self._link is not LinkState.CONNECTED or self._command_state is CommandState.LOCKED:
                 return False
             now = time.monotonic()
             self._setpoint = (v, yaw_rate, bool(body))
             self._last_command = now
+            self._coalesced += self._unsent_waiting()   # replaced before it was sent
             self._command_state = CommandState.ACTIVE
-            self._send_setpoint(now)
+            if self._refill(now) >= 1.0:
+                self._send_setpoint(now)
+            else:
+                self._unsent = True   # the link thread sends it when the next token comes
+                self._held += 1
+                self._next_setpoint = now + (1.0 - self._send_credit) / self.config.max_send_rate
             return True
 
     def send_vision_pose(self, position, orientation, stamp: float,
@@ -343,8 +488,10 @@ class Session:
             covariance = np.diag([pos_std ** 2] * 3 + [angle_std ** 2] * 3)
         cov = frames.pose_covariance_enu_to_ned(covariance)[np.triu_indices(6)]
         values = np.concatenate([p, [roll, pitch, yaw], cov])
-        if not np.isfinite(values).all():
-            raise ValueError('vision pose or covariance is not finite')
+        if not (np.abs(values) <= FLOAT32_MAX).all():   # NaN fails too
+            raise ValueError('vision pose or covariance is not finite in float32 (the wire type)')
+        if not 0.0 <= stamp < 2.0 ** 64 / 1e6:
+            raise ValueError(f'vision pose stamp {stamp} s is not a time since the epoch')
         with self._cond:
             if self._link is not LinkState.CONNECTED:
                 return False
@@ -457,15 +604,35 @@ class Session:
             self._require_link()
             if self._armed:
                 raise AutopilotError('SETUP_SIGNING is refused while armed: disarm first')
-            self._vehicle_signs = False
+            self._heartbeat_verified = False
             self._conn.mav.setup_signing_send(*self._target, list(self._key),
                                               self._conn.mav.signing.timestamp)
-            self._wait(lambda: self._vehicle_signs, timeout, 'a signed HEARTBEAT')
+            self._wait(lambda: self._heartbeat_verified, timeout, 'a signed HEARTBEAT')
 
     # ---------------------------------------------------------------- internals (lock held)
     def _require_link(self) -> None:
         if self._link is not LinkState.CONNECTED:
-            raise AutopilotError(f'no link to the autopilot ({self._link.value})')
+            problem = self._signing_problem(time.monotonic())
+            raise AutopilotError(f'no link to the autopilot ({self._link.value})'
+                                 + (f': {problem}' if problem else ''))
+
+    def _signing_problem(self, now: float) -> str | None:
+        """What stops signed communication, in plain words, or None.
+
+        Connected: a vehicle whose HEARTBEAT is signed when we have no key (it drops
+        every unsigned command on a link where it enforces signing), or signed with
+        another key. Not connected: the frames dropped for their signature in the last
+        link_timeout, which say why no vehicle is heard.
+        """
+        if self._link is LinkState.CONNECTED:
+            if self._vehicle_signs and self._key is None:
+                return 'vehicle signs its messages, we have no key (set signing_key_file)'
+            if self._vehicle_signs and not self._heartbeat_verified:
+                return 'vehicle signs with another key (wrong key?)'
+            return None
+        recent = [cause for cause in _REJECTED
+                  if now - self._rejected_at.get(cause, -math.inf) < self.config.link_timeout]
+        return _REJECTED[recent[0]] if recent else None
 
     def _wait(self, predicate, timeout: float, what: str, need_link: bool = True,
               raise_on_timeout: bool = True) -> bool:
@@ -503,7 +670,9 @@ class Session:
                     until = time.monotonic() + _REASON_GRACE
                     self._cond.wait_for(lambda: self._texts_between(sent, until), _REASON_GRACE)
                     raise CommandError(command, result, self._texts_between(sent, until))
-            raise CommandError(command, None, self._texts_between(sent, time.monotonic()))
+            now = time.monotonic()
+            raise CommandError(command, None, self._texts_between(sent, now),
+                               self._signing_problem(now))
         finally:
             self._waiting.discard(command)
 
@@ -512,17 +681,13 @@ class Session:
         return [text for stamp, text in self._texts if start <= stamp <= end]
 
     def _send_setpoint(self, now: float) -> None:
+        """Write the current setpoint (zero when hovering), fenced, in the autopilot's frame."""
         v, yaw_rate, body = self._setpoint
         if self._command_state is CommandState.HOVER:
             v, yaw_rate = (0.0, 0.0, 0.0), 0.0
         limits = self.config.limits
         if limits.fence_min is not None and limits.fence_max is not None:
-            tel = self._telemetry
-            if body:
-                yaw = frames.yaw_of(tel.orientation) if tel.orientation is not None else 0.0
-                v, body = frames.body_to_world(v, yaw), False
-            v = fence_velocity(v, tel.position, limits.fence_min, limits.fence_max,
-                               limits.fence_approach)
+            v, body = self._fenced(v, body), False
         if body:
             frame, (vx, vy, vz) = BODY_FRAME.get(self._autopilot, mavlink.MAV_FRAME_BODY_NED), frames.flu_to_frd(v)
         else:
@@ -530,7 +695,36 @@ class Session:
         self._conn.mav.set_position_target_local_ned_send(
             int((now - self._t0) * 1e3) & 0xFFFFFFFF, *self._target, frame, VELOCITY_YAW_RATE_MASK,
             0.0, 0.0, 0.0, vx, vy, vz, 0.0, 0.0, 0.0, 0.0, float(frames.yaw_rate_enu_to_ned(yaw_rate)))
+        self._send_credit = max(self._refill(now) - 1.0, 0.0)
+        self._unsent = False
         self._next_setpoint = now + 1.0 / self.config.stream_rate
+        self._cond.notify_all()
+
+    def _refill(self, now: float) -> float:
+        """The send credit, refilled at max_send_rate since the last refill, at most SEND_BURST."""
+        elapsed, self._credit_at = now - self._credit_at, now
+        if elapsed > 0.0:
+            self._send_credit = min(float(SEND_BURST),
+                                    self._send_credit + elapsed * self.config.max_send_rate)
+        return self._send_credit
+
+    def _unsent_waiting(self) -> bool:
+        """A coalesced command waits for its send slot (dropped if the stream stopped)."""
+        return self._unsent and self._command_state in (CommandState.ACTIVE, CommandState.HOVER) \
+            and self._link is LinkState.CONNECTED
+
+    def _fenced(self, v, body: bool) -> np.ndarray:
+        """The world velocity of a command, limited by the fence; zero without a finite
+        estimate of the position (or, for a body command, of the heading)."""
+        tel = self._telemetry
+        if body:
+            yaw = frames.yaw_of(tel.orientation) if tel.orientation is not None else math.nan
+            if not math.isfinite(yaw):
+                return np.zeros(3)
+            v = frames.body_to_world(v, yaw)
+        limits = self.config.limits
+        return fence_velocity(v, tel.position, limits.fence_min, limits.fence_max,
+                              limits.fence_approach)
 
     # ---------------------------------------------------------------- background thread
     def _run(self) -> None:
@@ -539,7 +733,7 @@ class Session:
             if conn is None:
                 self._open(time.monotonic())
                 continue
-            conn.select(0.01)
+            conn.select(self._poll_timeout(time.monotonic()))
             with self._cond:
                 try:
                     while (msg := conn.recv_msg()) is not None:
@@ -548,6 +742,13 @@ class Session:
                     log.warning('MAVLink link error: %s', e)
                     self._peer_closed = True
                 self._tick(time.monotonic())
+
+    def _poll_timeout(self, now: float) -> float:
+        """How long the link thread may wait for input: 10 ms, less when a coalesced
+        command's send slot comes sooner."""
+        if not self._unsent_waiting():
+            return 0.01
+        return min(0.01, max(self._next_setpoint - now, 0.0))
 
     def _open(self, now: float) -> None:
         if now < self._next_open:
@@ -558,7 +759,7 @@ class Session:
         try:
             conn = open_connection(cfg.connection, cfg.baud, cfg.source_system, cfg.source_component)
         except (OSError, ValueError) as e:
-            log.warning('cannot open %s: %s (retrying)', cfg.connection, e)
+            self._open_failed(e, now)
             return
         if isinstance(conn, mavutil.mavtcp):
             conn.handle_eof = conn.handle_disconnect = self._on_peer_closed
@@ -571,6 +772,22 @@ class Session:
         with self._cond:
             self._conn, self._opened_at, self._peer_closed = conn, now, False
         log.info('opened %s', cfg.connection)
+
+    def _open_failed(self, err: Exception, now: float) -> None:
+        """Say why the connection cannot be opened: at once, then every
+        OPEN_WARNING_PERIOD while the same reason lasts.
+
+        Retrying goes on whatever the reason, an unknown host included: a GCS radio or
+        VPN link, or the DNS itself, may come up after the relay (at boot, in the field),
+        and an operator watching the diagnostics sees the reason meanwhile.
+        """
+        reason = open_failure(self.config.connection, err)
+        with self._cond:
+            repeated = reason == self._open_error and now < self._next_open_warning
+            self._open_error = reason
+        if not repeated:
+            self._next_open_warning = now + OPEN_WARNING_PERIOD
+            log.warning('%s; retrying every second', reason)
 
     def _on_peer_closed(self) -> None:
         self._peer_closed = True
@@ -619,7 +836,8 @@ class Session:
     def _request_streams(self, now: float) -> None:
         """SET_MESSAGE_INTERVAL for every wanted message not seen lately (per link, lost on reboot)."""
         for name, rate in self.config.rates.items():
-            if name in _ARDUPILOT_ONLY and self._autopilot != ARDUPILOT:
+            if (name in _ARDUPILOT_ONLY and self._autopilot != ARDUPILOT
+                    or name in _PX4_ONLY and self._autopilot != PX4):
                 continue
             if now - self._seen.get(name, -math.inf) > max(1.0, 3.0 / rate):
                 self._conn.mav.command_long_send(
@@ -631,8 +849,10 @@ class Session:
     def _handle(self, msg) -> None:
         kind = msg.get_type()
         if kind == 'BAD_DATA':
-            if 'signature' in str(getattr(msg, 'reason', '')):
-                self._rejected += 1
+            if self._key is not None and 'signature' in str(getattr(msg, 'reason', '')):
+                cause = rejection_cause(self._key, msg.data)
+                self._rejected[cause] += 1
+                self._rejected_at[cause] = time.monotonic()
             return
         handler = self._handlers.get(kind)
         if handler is None:
@@ -656,7 +876,8 @@ class Session:
             return
         now = time.monotonic()
         self._last_hb = now
-        self._vehicle_signs = msg.get_signed()
+        self._vehicle_signs = bool(msg.get_header().incompat_flags & mavlink.MAVLINK_IFLAG_SIGNED)
+        self._heartbeat_verified = msg.get_signed()   # pymavlink: only with our key
         self._autopilot = _AUTOPILOTS.get(msg.autopilot, GENERIC)
         self._mav_type = msg.type
         self._vehicle_type = _enum_name('MAV_TYPE', msg.type).removeprefix('MAV_TYPE_')
@@ -672,8 +893,14 @@ class Session:
         self._cond.notify_all()
 
     def _on_ack(self, msg) -> None:
-        if msg.target_system not in (0, self.config.source_system):
-            return  # another GCS's command
+        """A COMMAND_ACK is ours when its (target_system, target_component) are our own
+        (source_system, source_component), or both 0: an autopilot that predates these
+        MAVLink 2 extension fields leaves them 0. Any other ack answers another ground
+        station's command: a MAVProxy beside the relay also sends as system 255, so the
+        system alone cannot tell its acks (refusals included) from ours."""
+        target = (msg.target_system, msg.target_component)
+        if target not in ((0, 0), (self.config.source_system, self.config.source_component)):
+            return
         if msg.command in self._waiting:
             self._acks[msg.command] = msg.result
             self._cond.notify_all()
@@ -684,8 +911,7 @@ class Session:
     def _on_statustext(self, msg) -> None:
         text = msg.text.rstrip('\x00') if isinstance(msg.text, str) else msg.text.decode(errors='replace')
         self._texts.append((time.monotonic(), text))
-        level = logging.WARNING if msg.severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO
-        log.log(level, 'autopilot: %s', text)
+        log.log(statustext_level(msg.severity), 'autopilot: %s', text)
         self._cond.notify_all()
 
     def _update(self, **fields) -> None:
@@ -699,6 +925,24 @@ class Session:
     def _on_attitude(self, msg) -> None:
         self._update(orientation=frames.attitude_ned_to_enu(msg.roll, msg.pitch, msg.yaw),
                      angular_velocity=frames.frd_to_flu([msg.rollspeed, msg.pitchspeed, msg.yawspeed]))
+
+    def _on_odometry(self, msg) -> None:
+        """The covariances of PX4's estimate (its pose and velocity come from
+        LOCAL_POSITION_NED and ATTITUDE, as for ArduPilot). An attitude that is no rotation
+        (zero or non-finite) leaves the twist covariance unknown."""
+        pose = frames.covariance_from_upper(msg.pose_covariance)
+        velocity = frames.covariance_from_upper(msg.velocity_covariance)
+        frame = _VELOCITY_FRAMES.get(msg.child_frame_id)
+        w, x, y, z = msg.q
+        norm = math.hypot(w, x, y, z)
+        twist = None
+        if velocity is not None and frame is not None and 0.0 < norm < math.inf:
+            q_enu_flu = frames.quat_ned_to_enu(np.array([x, y, z, w]) / norm)
+            twist = np.zeros((6, 6))
+            twist[:3, :3] = frames.velocity_covariance_to_flu(velocity[:3, :3], frame, q_enu_flu)
+            twist[3:, 3:] = frames.R_FLU_FRD @ velocity[3:, 3:] @ frames.R_FLU_FRD.T
+        self._update(pose_covariance=None if pose is None else frames.pose_covariance_ned_to_enu(pose),
+                     twist_covariance=twist)
 
     def _on_global_position(self, msg) -> None:
         self._update(height=msg.relative_alt * 1e-3, latitude=msg.lat * 1e-7,

@@ -3,7 +3,11 @@
 The ROS side (uav_vs.nodes.bag_player) opens a Bag, builds a Plan from the command
 line, creates one publisher per `Plan.topics` entry under `Plan.name(topic)` and
 publishes every message of `Plan.schedule()` once its due time has come.
+
+A bag topic whose name ROS 2 does not allow (ROS 1 allows more, e.g. `/ORB-SLAM/pose`)
+is played under `ros2_name(topic)` unless a remap names it.
 """
+import re
 from dataclasses import dataclass, field
 from itertools import count
 from typing import Iterable, Iterator
@@ -37,6 +41,18 @@ def parse_remaps(items: Iterable[str]) -> dict[str, str]:
     return out
 
 
+_NOT_IN_ROS2_NAMES = re.compile(r'[^A-Za-z0-9_/]')
+
+
+def ros2_name(topic: str) -> str:
+    """`topic` made a legal ROS 2 name: every character but letters, digits, '_' and '/'
+    becomes '_', a token starting with a digit gets a leading '_', empty tokens ('//', a
+    trailing '/') go. A legal ROS 2 name is returned as it is."""
+    tokens = [t for t in _NOT_IN_ROS2_NAMES.sub('_', topic).split('/') if t]
+    name = '/'.join(f'_{t}' if t[0].isdigit() else t for t in tokens) or '_'
+    return f'/{name}' if topic.startswith('/') else name
+
+
 def _key(topic: str) -> str:
     """Names given on the command line match bag topics with or without a leading slash."""
     return topic.lstrip('/')
@@ -60,7 +76,11 @@ class Plan:
         if unused:
             raise BagError(f'{bag.path}: remap of {", ".join(unused)}: no such topic in the bag')
         self.topics: dict[str, TopicInfo] = {t: bag.topics[t] for t in chosen}
-        self._names = {by_key[_key(old)]: new for old, new in options.remap.items()}
+        remapped = {by_key[_key(old)]: new for old, new in options.remap.items()}
+        self.renamed = {t: ros2_name(t) for t in chosen
+                        if t not in remapped and ros2_name(t) != t}   # by the ROS 2 name rule
+        self._names = {**self.renamed, **remapped}
+        self._check_unique()
         self.start_ns = bag.start_ns + round(options.start_s * 1e9)
         end_ns = bag.end_ns if options.duration_s is None else min(
             bag.end_ns, self.start_ns + round(options.duration_s * 1e9))
@@ -70,6 +90,16 @@ class Plan:
     def name(self, topic: str) -> str:
         """The name `topic` is published under."""
         return self._names.get(topic, topic)
+
+    def _check_unique(self) -> None:
+        """Raise BagError if two chosen topics would be published under one name."""
+        by_name: dict[str, list[str]] = {}
+        for topic in self.topics:
+            by_name.setdefault(_key(self.name(topic)), []).append(topic)
+        for topics in by_name.values():
+            if len(topics) > 1:
+                raise BagError(f'{self.bag.path}: topics {" and ".join(topics)} would both be '
+                               f'played as {self.name(topics[-1])}: --remap one of them')
 
     def due_s(self, pass_index: int, t_ns: int) -> float:
         """Seconds after play start at which a message recorded at t_ns is due."""

@@ -3,11 +3,14 @@
 A bag is any of: a rosbag2 folder with metadata.yaml (sqlite3 or mcap storage, split
 into several files, metadata versions 4 to 9, zstd compression), a rosbag2 folder of
 storage files without metadata.yaml, one .db3 or .mcap file, or a ROS 1 .bag file
-(its messages converted to CDR). Messages are read from the storage files themselves,
-never through the metadata's connection list (rosbags matches those by QoS text and
-yields nothing when metadata and storage disagree), and the count read is checked
-against what the bag's index promises.
+(its messages converted to CDR). The storage files are the truth: topics, counts and
+time window come from them, never from metadata.yaml, which is a hint (rosbags matches
+its connection list by QoS text and yields nothing when metadata and storage disagree;
+rosbag2's own split test bags promise a window their storage does not hold). Where the
+metadata disagrees, `Bag.metadata_mismatch` says how. The count read is checked against
+what the storage's index promises.
 """
+import heapq
 import re
 from collections import Counter
 from contextlib import ExitStack
@@ -98,7 +101,8 @@ class _Source:
 
 
 class Bag:
-    """An open bag: `topics`, `start_ns`, `end_ns` (after the last message) and `messages()`.
+    """An open bag: `topics`, `start_ns`, `end_ns` (after the last message) and `messages()`,
+    all as the storage holds them; `metadata_mismatch`: how metadata.yaml disagrees, or None.
 
     Raises BagError, naming the file, when the bag cannot be opened.
     """
@@ -108,6 +112,7 @@ class Bag:
         self.topics: dict[str, TopicInfo] = {}
         self.start_ns = 0
         self.end_ns = 0
+        self.metadata_mismatch: str | None = None
         self._sources: list[_Source] = []
         self._stack = ExitStack()
         try:
@@ -134,25 +139,20 @@ class Bag:
 
     def messages(self, topics: Iterable[str] | None = None, start_ns: int | None = None,
                  stop_ns: int | None = None) -> Iterator[BagMessage]:
-        """Yield the messages of `topics` (all if None) with start_ns <= t < stop_ns, in order.
+        """Yield the messages of `topics` (all if None) with start_ns <= t < stop_ns, in time
+        order across the files of a split bag.
 
         Reading the whole bag (no bounds, or bounds around all of it) checks the count per
-        topic against the bag's index and raises BagError on any difference, so an
+        topic against the storage's index and raises BagError on any difference, so an
         unreadable bag is never played as an empty or shortened stream.
         """
         wanted = set(self.topics) if topics is None else set(topics)
+        streams = [_read(source, [c for c in source.storage.connections if c.topic in wanted],
+                         start_ns, stop_ns) for source in self._sources]
         got: Counter[str] = Counter()
-        for source in self._sources:
-            conns = [c for c in source.storage.connections if c.topic in wanted]
-            if not conns:
-                continue
-            try:
-                for conn, t_ns, data in source.storage.messages(conns, start_ns, stop_ns):
-                    got[conn.topic] += 1
-                    yield BagMessage(conn.topic, conn.msgtype, t_ns, source.to_cdr(conn, data))
-            except Exception as err:
-                raise BagError(f'{source.file}: corrupt bag after {sum(got.values())} messages: '
-                               f'{err}') from err
+        for msg in heapq.merge(*streams, key=lambda m: m.t_ns):
+            got[msg.topic] += 1
+            yield msg
         whole = ((start_ns is None or start_ns <= self.start_ns)
                  and (stop_ns is None or stop_ns >= self.end_ns))
         if whole:
@@ -160,7 +160,7 @@ class Bag:
                      if got[t] != self.topics[t].count}
             if short:
                 detail = ', '.join(f'{t}: {n} of {m}' for t, (n, m) in short.items())
-                raise BagError(f'{self.path}: the storage holds other than the metadata '
+                raise BagError(f'{self.path}: the storage holds other than its index '
                                f'promises (messages read: {detail})')
 
     def _open(self) -> None:
@@ -193,9 +193,33 @@ class Bag:
 
     def _open_rosbag2_folder(self) -> None:
         reader = self._opened(Rosbag2Reader(self.path), self._failing_file)
-        for storage in reader.storage.storages:
+        storages = reader.storage.storages
+        for storage in storages:
             self._sources.append(_Source(self.path / storage.path.name, storage, _cdr))
-        self._set_topics(reader.connections, reader.start_time, reader.end_time)
+        self._set_topics([c for s in storages for c in s.connections],
+                         min(s.metadata.start_time for s in storages),
+                         max(s.metadata.end_time for s in storages))
+        self.metadata_mismatch = self._mismatch(reader)
+
+    def _mismatch(self, metadata: Rosbag2Reader) -> str | None:
+        """How `metadata` (opened on metadata.yaml) disagrees with the storage, or None."""
+        promised: Counter[str] = Counter()
+        for c in metadata.connections:
+            promised[c.topic] += c.msgcount
+        held = {t: info.count for t, info in self.topics.items()}
+        counts = [f'{t}: {promised[t]} in metadata, {held.get(t, 0)} in storage'
+                  for t in sorted(set(promised) | set(held)) if promised[t] != held.get(t, 0)]
+        window = ((metadata.start_time, metadata.end_time) if metadata.message_count else (0, 0))
+        what = []
+        if window != (self.start_ns, self.end_ns):
+            what.append(f'time window [{window[0]}, {window[1]}) ns in metadata, '
+                        f'[{self.start_ns}, {self.end_ns}) ns in storage')
+        if counts:
+            what.append('message counts ' + '; '.join(counts))
+        if not what:
+            return None
+        return (f'{self.path}: metadata.yaml disagrees with the storage, which is read as the '
+                f'truth: {"; ".join(what)}')
 
     def _failing_file(self) -> Path:
         """The storage file of a rosbag2 folder that cannot be opened on its own, if any."""
@@ -244,6 +268,20 @@ class Bag:
                     [q for x in conns if x.topic == c.topic for q in x.ext.offered_qos_profiles])
                 self.topics[c.topic] = TopicInfo(c.topic, c.msgtype, counts[c.topic], offer)
         self.start_ns, self.end_ns = (start_ns, end_ns) if counts.total() else (0, 0)
+
+
+def _read(source: _Source, conns: list[Connection], start_ns: int | None,
+          stop_ns: int | None) -> Iterator[BagMessage]:
+    """The messages of `conns` in one storage file; a BagError naming the file if it is corrupt."""
+    if not conns:
+        return
+    n = 0
+    try:
+        for conn, t_ns, data in source.storage.messages(conns, start_ns, stop_ns):
+            n += 1
+            yield BagMessage(conn.topic, conn.msgtype, t_ns, source.to_cdr(conn, data))
+    except Exception as err:
+        raise BagError(f'{source.file}: corrupt bag after {n} of its messages: {err}') from err
 
 
 def _cdr(conn: Connection, data: bytes) -> bytes:

@@ -67,6 +67,16 @@ _CLAUSE = re.compile(r'^\s*(\w+)\s+IS\s+(\w+)\s*$', re.IGNORECASE)
 _AND = re.compile(r'\s+AND\s+', re.IGNORECASE)
 
 
+def _einsum_vecdot(x1: np.ndarray, x2: np.ndarray, axis: int = -1) -> np.ndarray:
+    """np.vecdot for real arrays on NumPy 1.x (Ubuntu 24.04's 1.26), which lacks it."""
+    x1, x2 = np.broadcast_arrays(x1, x2)
+    return np.einsum('...i,...i->...', np.moveaxis(x1, axis, -1), np.moveaxis(x2, axis, -1))
+
+
+# NumPy >= 2's own ufunc where there is one: the closed-form centroid's inner product.
+_vecdot = getattr(np, 'vecdot', _einsum_vecdot)
+
+
 def trapezoid(x: np.ndarray, a: float, b: float, c: float, d: float) -> np.ndarray:
     """Trapezoidal membership [a, b, c, d] (a <= b <= c <= d); a == b or c == d is a vertical edge."""
     x = np.asarray(x, dtype=float)
@@ -688,7 +698,7 @@ class FuzzyBank:
         np.multiply(self._delta, near_l, out=self._delta_l)
         np.multiply(self._delta, near_r, out=self._delta_r)
         np.multiply(self._delta, m, out=self._delta_m)
-        area, moment = np.vecdot(self._phi_flat, self._coef, axis=-2)
+        area, moment = _vecdot(self._phi_flat, self._coef, axis=-2)
         y, ok = moment / area, area > _TINY
         return (np.where(ok, y, self.default) if self._nonzero_default else y), ok
 
@@ -703,7 +713,7 @@ class FuzzyBank:
         if self.defuzzification == 'height':
             den = np.add.reduce(level, axis=1)
             ok &= den > 0
-            y = np.vecdot(level, self._centre) / np.where(ok, den, 1.0)
+            y = _vecdot(level, self._centre) / np.where(ok, den, 1.0)
             return np.where(ok, y, self.default), ok
         xa, fa = self._aggregate(level)
         if self.defuzzification == 'centroid':

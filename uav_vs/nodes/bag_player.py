@@ -11,8 +11,15 @@ subscribers take it, reliably, nothing dropped. Before the first message the pla
 waits up to --wait-subscribers seconds for every topic to have a subscriber; before it
 exits, for every message to be acknowledged. Topics whose type has no Python message
 package installed are skipped with a warning. `--clock HZ` publishes the bag time on
-/clock (rosgraph_msgs/Clock) for nodes running with use_sim_time. Exit status: 0 when
-the replay ran (or was interrupted), 1 when the bag cannot be played, 2 on bad arguments.
+/clock (rosgraph_msgs/Clock) for nodes running with use_sim_time.
+
+The storage is the truth: where metadata.yaml promises another time window or other
+counts, one warning says so and every stored message plays. A topic name that ROS 2
+does not allow (ROS 1 bags may hold `/ORB-SLAM/pose`) is played under a legal one, each
+character other than letters, digits, '_' and '/' replaced by '_' and '_' put before a
+name token starting with a digit (`/ORB_SLAM/pose`, `/_3d/points`), logged once per
+topic; a `--remap` of the topic takes precedence. Exit status: 0 when the replay ran (or
+was interrupted), 1 when the bag cannot be played, 2 on bad arguments.
 """
 import argparse
 import sys
@@ -22,9 +29,11 @@ from typing import TextIO
 
 import rclpy
 from rclpy.duration import Duration
+from rclpy.exceptions import InvalidTopicNameException
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.validate_topic_name import validate_topic_name
 from rosgraph_msgs.msg import Clock
 
 from uav_vs.bag.play import Plan, PlayOptions, parse_remaps, progress_line
@@ -141,12 +150,23 @@ class BagPlayer:
                    for p in self.pubs.values())
 
 
+def check_topic_name(name: str, what: str) -> None:
+    """Raise ValueError naming `what` when `name` is not a legal ROS 2 topic name."""
+    try:
+        validate_topic_name(name)
+    except InvalidTopicNameException as err:
+        reason = str(err).splitlines()[0].removeprefix('Invalid topic name: ').rstrip(':')
+        raise ValueError(f'{what} {name!r} is not a ROS 2 topic name ({reason})') from None
+
+
 def main(argv: list[str] | None = None) -> int:
     own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
     args = parse_args(own)
     try:
         options = PlayOptions(args.rate, args.start, args.duration, args.loop,
                               tuple(args.topics) if args.topics else None, parse_remaps(args.remap))
+        for new in options.remap.values():
+            check_topic_name(new, '--remap target')
     except ValueError as err:
         print(f'bag_play: error: {err}', file=sys.stderr)
         return 2
@@ -161,8 +181,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # Without its own /rosout publisher, a replayed /rosout carries the bag's messages only.
         node = rclpy.create_node('bag_player', enable_rosout=False)
-        player = BagPlayer(node, Plan(bag, options), args.clock, args.qos_reliable)
         log = node.get_logger()
+        if bag.metadata_mismatch:
+            log.warn(bag.metadata_mismatch)
+        player = BagPlayer(node, Plan(bag, options), args.clock, args.qos_reliable)
+        for topic, name in player.plan.renamed.items():
+            if topic in player.pubs:
+                log.info(f'topic {topic} played as {name}')
         alone = player.wait_for_subscribers(args.wait_subscribers)
         if alone:
             log.info(f'no subscriber yet on {", ".join(player.plan.name(t) for t in alone)}')

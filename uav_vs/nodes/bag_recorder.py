@@ -5,9 +5,12 @@
 Each topic is subscribed once a publisher of it appears (raw CDR, KEEP_ALL, reliable
 and transient local when every publisher offers them, so nothing is lost at image
 rates) and recorded under its fully qualified name with the receive time of the node's
-clock, its type hash and the QoS its publishers offered. SIGINT or SIGTERM stops the
-recording and writes metadata.yaml (rosbag2 version 9, as Jazzy's `ros2 bag` reads it).
-Exit status: 0 after a recording, 1 when the bag cannot be written, 2 on bad arguments.
+clock, its message definition, the type hash computed from that definition (a warning
+if the publishers announce another) and the QoS its publishers offered. SIGINT or
+SIGTERM stops the recording and writes metadata.yaml (rosbag2 version 9, as Jazzy's
+`ros2 bag` reads it). A topic name that ROS 2 does not allow stops it with one FATAL
+line before anything is written. Exit status: 0 after a recording, 1 when the bag
+cannot be written, 2 on bad arguments.
 """
 import argparse
 import sys
@@ -20,6 +23,7 @@ from rosbags.interfaces import Connection
 
 from uav_vs.bag.reader import BagError, record_request
 from uav_vs.bag.writer import STORAGES, BagWriter
+from uav_vs.nodes.bag_player import check_topic_name
 from uav_vs.ros.cli import split_ros_args
 from uav_vs.ros.replay import bag_qos, lossless_qos, message_class
 
@@ -54,11 +58,14 @@ class BagRecorder(Node):
             try:
                 cls = message_class(msgtype)
                 offered = [bag_qos(p.qos_profile) for p in publishers]
-                conn = self._writer.add_topic(topic, msgtype, offered,
-                                              str(publishers[0].topic_type_hash))
+                conn = self._writer.add_topic(topic, msgtype, offered)
             except (ImportError, AttributeError, BagError) as err:
                 self.get_logger().error(f'not recording {topic}: {err}')
                 continue
+            announced = str(publishers[0].topic_type_hash)
+            if announced.startswith('RIHS01_') and conn.digest != announced:
+                self.get_logger().warn(f'{topic}: its publishers announce type hash {announced}, '
+                                       f'the definition stored hashes to {conn.digest}')
             self.create_subscription(cls, topic, partial(self._write, conn),
                                      lossless_qos(record_request(offered)), raw=True)
             self.get_logger().info(f'recording {topic} ({msgtype})')
@@ -72,6 +79,12 @@ class BagRecorder(Node):
 def main(argv: list[str] | None = None) -> int:
     own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
     args = parse_args(own)
+    try:
+        for topic in args.topics:
+            check_topic_name(topic, 'topic')
+    except ValueError as err:
+        rclpy.logging.get_logger('bag_recorder').fatal(str(err))
+        return 2
     try:
         writer = BagWriter(args.output, args.storage)
     except BagError as err:

@@ -17,35 +17,48 @@ RMS, re-anchors, relocalisations, lost frames, malformed images and, when lost, 
 
 The first image initialises the estimator (init.*); until that succeeds (a blurred or
 texture-less first frame) every new image retries. Frames reach it through
-uav_vs.ros.image_input: decoded once, in stamp order, malformed ones counted and skipped.
+uav_vs.ros.image_input: decoded once, in stamp order, malformed and future-stamped ones
+counted and skipped. When time goes back (a bag loop, a new replay) the estimator starts
+again as at start-up: the next frame initialises it from init.*.
 """
 import time
+from typing import Callable
 
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from std_msgs.msg import Header
 
 from uav_vs.ros.convert import pose_to_msg, stamp_to_ns
-from uav_vs.ros.image_input import QOS_CHOICES, ImageInput
+from uav_vs.ros.image_input import QOS_CHOICES, ImageInput, InputLimits, stamp_params
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, run
-from uav_vs.ros.params import REQUIRED, Param, T, declare
+from uav_vs.ros.params import REQUIRED, LiveParams, Param, T, declare
 from uav_vs.vision.onboard_config import SETTINGS, load_onboard_config
 from uav_vs.vision.plane_pose import PlanePoseEstimator
 
 _TYPES = {'int': T.INTEGER, 'float': T.DOUBLE, 'str': T.STRING, 'floats': T.DOUBLE_ARRAY}
 
+# The estimator's thresholds, read on every frame, take effect when set at run time; the
+# calibration, the first frame's pose and what builds the tracker (klt.*, the features'
+# detection) or describes a keyframe (relocalise.features, .max_features) are read-only.
+LIVE = {'features.max_features', 'features.min_tracks', 'homography.method',
+        'homography.threshold_px', 'homography.confidence', 'homography.max_trials',
+        'homography.min_inliers', 'pose.max_rms_px', 'keyframe.reanchor_inliers',
+        'keyframe.reanchor_coverage', 'relocalise.after_frames', 'relocalise.ratio',
+        'relocalise.max_shift', 'image_quality.blur_level', 'image_quality.min_sharpness'}
 ONBOARD_PARAMS = [Param(s.key, _TYPES[s.kind], REQUIRED if s.default is None else s.default,
-                        s.description, s.low, s.high, s.choices, s.size or None)
+                        s.description, s.low, s.high, s.choices, s.size or None,
+                        live=s.key in LIVE)
                   for s in SETTINGS]
 
 NODE_PARAMS = [
     Param('homography_pose.image_qos', T.STRING, 'sensor_data',
           'image subscriptions: sensor_data (best effort) or reliable', choices=QOS_CHOICES),
     Param('homography_pose.frame_id', T.STRING, 'world', 'frame of the published pose (ENU)'),
-    Param('homography_pose.diagnostics_period', T.DOUBLE, 1.0, 'diagnostics period, s',
-          0.05, 60.0),
+    Param('homography_pose.diagnostics_period', T.DOUBLE, 1.0, 'diagnostics period, s '
+          '(read-only: the timer is made at start-up)', 0.05, 60.0),
     Param('homography_pose.seed', T.INTEGER, 0, 'random seed of the ransac and lmeds '
           'estimators (repeatable runs)', 0, 2**31 - 1),
+    *stamp_params('homography_pose'),
 ]
 
 STATS = ('sharpness', 'tracked', 'inliers', 'trials', 'rms_px', 'reanchors', 'relocalisations',
@@ -55,15 +68,20 @@ STATS = ('sharpness', 'tracked', 'inliers', 'trials', 'rms_px', 'reanchors', 're
 class HomographyPoseNode(Node):
     def __init__(self) -> None:
         super().__init__('homography_pose_node')
-        cfg = load_onboard_config(declare(self, ONBOARD_PARAMS))
+        onboard = declare(self, ONBOARD_PARAMS)
+        self.cfg = cfg = load_onboard_config(onboard)
         p = declare(self, NODE_PARAMS)
         self.frame_id = p['homography_pose.frame_id']
         self.H0 = cfg.initial_homography
-        self.estimator = PlanePoseEstimator(cfg.camera, cfg.params, cfg.camera_to_body,
-                                            seed=p['homography_pose.seed'])
+        self.new_estimator = lambda: PlanePoseEstimator(self.cfg.camera, self.cfg.params,
+                                                        self.cfg.camera_to_body,
+                                                        seed=p['homography_pose.seed'])
+        self.estimator = self.new_estimator()
         self.pose_pub = self.create_publisher(PoseStamped, 'onboard/pose', 10)
         self.images = ImageInput(self, 'onboard/image_raw', p['homography_pose.image_qos'],
-                                 self.on_frame, (cfg.camera.width, cfg.camera.height))
+                                 self.on_frame, (cfg.camera.width, cfg.camera.height),
+                                 limits=InputLimits.of(p, 'homography_pose'),
+                                 on_restart=self.restart)
         self.counts = dict(frames=0, poses=0, lost=0)
         self.last = dict(reason='no image yet', last_loss='', last_loss_stamp='',
                          process_ms=float('nan'), **{k: '' for k in STATS})
@@ -71,6 +89,22 @@ class HomographyPoseNode(Node):
         self.create_timer(p['homography_pose.diagnostics_period'], self.publish_diagnostics)
         self.get_logger().info(f'{cfg.camera.width}x{cfg.camera.height} camera, initialising '
                                f'from {cfg.init_mode}, homography {cfg.params.method}')
+        LiveParams(self, [*ONBOARD_PARAMS, *NODE_PARAMS], {**onboard, **p}, self.reconfigure)
+
+    def reconfigure(self, p: dict, changed: set[str]) -> Callable[[], None]:
+        """Checked parameters set at run time -> what makes them take effect: the
+        estimator's new thresholds from the next frame on (its tracks are kept)."""
+        cfg = load_onboard_config({s.key: p[s.key] for s in SETTINGS})
+
+        def apply() -> None:
+            self.cfg = cfg
+            self.estimator.params = cfg.params     # frozen; its klt settings are unchanged
+            self.images.set_limits(InputLimits.of(p, 'homography_pose'))
+        return apply
+
+    def restart(self) -> None:
+        """Time went back (a new replay): start again from init.*, as at start-up."""
+        self.estimator = self.new_estimator()
 
     def on_frame(self, gray, header: Header) -> None:
         self.counts['frames'] += 1
@@ -104,6 +138,7 @@ class HomographyPoseNode(Node):
             level, message = WARN, f'tracking lost: {reason}'
         else:
             level, message = OK, 'tracking'
+        level, message = self.images.diagnose(level, message)
         self.diag.publish(level, message, {**self.counts, **self.images.counts, **self.last})
 
 

@@ -1,7 +1,9 @@
 """sim_world: the closed-loop simulated world (chapter section 5), one process.
 
-Runs the MAVLink vehicle simulator in-process (its endpoint `vehicle.connection` is
-what mavlink_relay_node connects to) and renders, from the vehicle's true state, the
+Its vehicle (`vehicle.model`) is the MAVLink vehicle simulator, run in-process (its
+endpoint `vehicle.connection` is what mavlink_relay_node connects to), or ArduPilot SITL,
+whose physics' own state it reads as SIM_STATE from `vehicle.sitl_connection` (a SITL
+port the relay does not use; uav_vs.sim.sitl_truth). It renders, from that true state, the
 ground cameras of `cameras.names` (config/ground_trinocular.yaml) at `ground.rate` and
 the onboard down-looking camera (config/onboard.yaml) at `onboard.rate`. Start it with
 the three params files:
@@ -15,8 +17,16 @@ Publishes, every frame with the stamp of the instant the truth was sampled:
 recorder) and `camK/camera_info` for each ground camera, the same three under `onboard/`
 (not while the onboard camera is below `onboard.min_height`), `truth/pose`
 (PoseStamped, base_link in `world` ENU, for evaluation only) and /diagnostics.
+The camera effects of uav_vs.sim.camera_effects (noise, lens distortion, motion blur,
+exposure drift, JPEG artefacts, dropped frames, latency), calibration error (the cameras
+render from a rig a little off the calibration camera_info carries) and, for the builtin vehicle,
+wind gusts and the drift of its estimate are each switched by their own parameter
+group; by default only the noise and the calibrated distortion are on.
+Every parameter is read-only: the world, its vehicle and cameras are built at start-up.
 """
 import time
+from dataclasses import replace
+from typing import Callable
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -27,31 +37,55 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from uav_vs.nodes.homography_pose_node import ONBOARD_PARAMS
-from uav_vs.ros.convert import bgr_to_compressed, bgr_to_image, camera_info, pose_to_msg
+from uav_vs.ros.convert import (bgr_to_compressed, bgr_to_image, camera_info, pose_to_msg,
+                                stamp_to_ns)
 from uav_vs.ros.ground_params import declare_cameras, declare_landmarks
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, run
 from uav_vs.ros.params import Param, T, declare
+from uav_vs.sim.calibration_error import CalibrationSpread, true_camera, true_mount
+from uav_vs.sim.camera_effects import CameraEffects, EffectsConfig, Latency
+from uav_vs.sim.delay_line import DelayLine
 from uav_vs.sim.ground_scene import GroundScene
 from uav_vs.sim.mavlink_vehicle import CUSTOM_MODES, MavlinkVehicle, VehicleConfig
 from uav_vs.sim.onboard_scene import OnboardScene
-from uav_vs.sim.world import SimWorld, VehicleState
+from uav_vs.sim.sitl_truth import SitlTruth
+from uav_vs.sim.world import SimulatedVehicle, SimWorld, Vehicle, VehicleState
 from uav_vs.vision.camera import Camera
-from uav_vs.vision.ground_config import load_ground_config
-from uav_vs.vision.onboard_config import load_onboard_config
+from uav_vs.vision.ground_config import GroundConfig, load_ground_config
+from uav_vs.vision.onboard_config import OnboardConfig, load_onboard_config
 
 _V = VehicleConfig()
+MODELS = ('builtin', 'sitl')
+SITL_WAIT_S = 30.0      # for the first SIM_STATE at start-up
 PARAMS = [
+    Param('vehicle.model', T.STRING, 'builtin',
+          'the vehicle: builtin (the MAVLink vehicle simulator, served on vehicle.connection) '
+          'or sitl (ArduPilot SITL, its truth read from vehicle.sitl_connection)', choices=MODELS),
     Param('vehicle.connection', T.STRING, _V.connection,
-          'MAVLink endpoint the vehicle serves: tcpin:HOST:PORT, udpin:HOST:PORT or '
+          'builtin: MAVLink endpoint the vehicle serves: tcpin:HOST:PORT, udpin:HOST:PORT or '
           'udpout:HOST:PORT'),
-    Param('vehicle.system_id', T.INTEGER, _V.system_id, 'MAVLink system id of the vehicle', 1, 255),
+    Param('vehicle.sitl_connection', T.STRING, 'tcp:127.0.0.1:5762',
+          "sitl: a SITL MAVLink port the relay does not use (SERIAL1 or SERIAL2), where the "
+          'SIM_STATE truth is read: tcp:HOST:PORT or udpin:HOST:PORT'),
+    Param('vehicle.system_id', T.INTEGER, _V.system_id,
+          'MAVLink system id of the vehicle (builtin or SITL)', 1, 255),
     Param('vehicle.autopilot', T.STRING, _V.autopilot,
-          "whose MAVLink behaviour the vehicle follows: ArduPilot Copter's or PX4's",
+          "builtin: whose MAVLink behaviour the vehicle follows: ArduPilot Copter's or PX4's",
           choices=tuple(CUSTOM_MODES)),
-    Param('vehicle.rate', T.DOUBLE, _V.rate, 'simulation and telemetry loop rate, Hz',
+    Param('vehicle.rate', T.DOUBLE, _V.rate, 'builtin: simulation and telemetry loop rate, Hz',
           10.0, 1000.0),
     Param('vehicle.ready_delay', T.DOUBLE, _V.ready_delay,
-          'seconds after start before the vehicle can arm (estimator ready)', 0.0, 600.0),
+          'builtin: seconds after start before the vehicle can arm (estimator ready)', 0.0, 600.0),
+    Param('wind.enabled', T.BOOL, False, 'builtin: horizontal wind gusts the velocity loop has '
+          'not yet rejected push the vehicle'),
+    Param('wind.gust_sigma', T.DOUBLE, 0.05, 'builtin: spread of the gust velocity per axis, m/s',
+          0.0, 5.0),
+    Param('wind.time_constant', T.DOUBLE, 1.0, 'builtin: time constant of the gusts, s',
+          0.05, 600.0),
+    Param('drift.enabled', T.BOOL, False, "builtin: the autopilot's position estimate drifts "
+          'from the truth (LOCAL_POSITION_NED, ODOMETRY, GLOBAL_POSITION_INT)'),
+    Param('drift.rate', T.DOUBLE, 0.01, 'builtin: random-walk rate of the drift per axis, '
+          'm/sqrt(s)', 0.0, 1.0),
     Param('ground.rate', T.DOUBLE, 15.0, 'ground camera frame rate, Hz (0 = not rendered)',
           0.0, 60.0),
     Param('ground.noise_sigma', T.DOUBLE, 2.0, 'ground images: Gaussian sensor noise, grey levels',
@@ -68,7 +102,72 @@ PARAMS = [
     Param('world.seed', T.INTEGER, 0, 'sensor noise seed', 0, 2**31 - 1),
     Param('world.jpeg_quality', T.INTEGER, 90, 'JPEG quality of image_raw/compressed', 1, 100),
     Param('world.diagnostics_period', T.DOUBLE, 1.0, 'diagnostics period, s', 0.05, 60.0),
+    # Camera effects (uav_vs.sim.camera_effects), each on its own switch.
+    Param('noise.enabled', T.BOOL, True, 'add Gaussian sensor noise of ground.noise_sigma and '
+          'onboard.noise_sigma'),
+    Param('distortion.enabled', T.BOOL, True, "render through each camera's calibrated lens "
+          'distortion D, published in camera_info; false: ideal pinhole images, D = 0'),
+    Param('calibration.enabled', T.BOOL, False, 'the rendering cameras are a little off the '
+          'calibration the nodes are given (and camera_info carries)'),
+    Param('calibration.position_sigma', T.DOUBLE, 0.005, 'error of each optical centre (and '
+          'of the onboard mount) per axis, m', 0.0, 1.0),
+    Param('calibration.angle_sigma', T.DOUBLE, 0.001, 'error of each camera orientation (and '
+          'of the onboard mount) about each axis, rad', 0.0, 0.5),
+    Param('calibration.focal_sigma', T.DOUBLE, 0.002, 'relative error of the focal lengths',
+          0.0, 0.5),
+    Param('calibration.principal_sigma', T.DOUBLE, 0.5, 'error of the principal points per '
+          'axis, px', 0.0, 100.0),
+    Param('motion_blur.enabled', T.BOOL, False, 'blur along the image-plane motion during the '
+          'exposure'),
+    Param('motion_blur.exposure', T.DOUBLE, 0.01, 'exposure time, s', 1e-5, 1.0),
+    Param('exposure.enabled', T.BOOL, False, 'auto-exposure gain and offset drifting slowly'),
+    Param('exposure.gain_sigma', T.DOUBLE, 0.1, 'standard deviation of the gain around 1',
+          0.0, 1.0),
+    Param('exposure.offset_sigma', T.DOUBLE, 5.0, 'standard deviation of the offset, grey levels',
+          0.0, 100.0),
+    Param('exposure.time_constant', T.DOUBLE, 5.0, 'time constant of the drift, s', 0.01, 1e4),
+    Param('jpeg.enabled', T.BOOL, False, 'JPEG artefacts in image_raw (a compressed camera link)'),
+    Param('jpeg.quality', T.INTEGER, 50, 'JPEG quality of the artefacts', 1, 100),
+    Param('drops.enabled', T.BOOL, False, 'frames lost at random, each camera on its own'),
+    Param('drops.probability', T.DOUBLE, 0.05, 'probability that a frame is lost', 0.0, 1.0),
+    Param('latency.enabled', T.BOOL, False, 'publish each frame late: its stamp (the capture) is '
+          'earlier than its publication by latency.mean +- latency.jitter'),
+    Param('latency.mean', T.DOUBLE, 0.03, 'capture-to-publication delay, s', 0.0, 1.0),
+    Param('latency.jitter', T.DOUBLE, 0.005, 'uniform jitter of the delay, s (at most '
+          'latency.mean)', 0.0, 1.0),
 ]
+
+
+def effects_config(p: dict, noise_sigma: float) -> EffectsConfig:
+    """The image effects the parameters switch on, for a camera of `noise_sigma`."""
+    return EffectsConfig(
+        noise_sigma=noise_sigma if p['noise.enabled'] else 0.0,
+        jpeg_quality=p['jpeg.quality'] if p['jpeg.enabled'] else 0,
+        exposure_time=p['motion_blur.exposure'] if p['motion_blur.enabled'] else 0.0,
+        gain_sigma=p['exposure.gain_sigma'] if p['exposure.enabled'] else 0.0,
+        offset_sigma=p['exposure.offset_sigma'] if p['exposure.enabled'] else 0.0,
+        drift_time_constant=p['exposure.time_constant'],
+        drop_probability=p['drops.probability'] if p['drops.enabled'] else 0.0)
+
+
+def true_rig(ground: GroundConfig, onboard: OnboardConfig, p: dict
+             ) -> tuple[GroundConfig, OnboardConfig]:
+    """The cameras as they really are, off the calibration by the calibration.* spread
+    (uav_vs.sim.calibration_error), drawn from world.seed."""
+    spread = CalibrationSpread(p['calibration.position_sigma'], p['calibration.angle_sigma'],
+                               p['calibration.focal_sigma'], p['calibration.principal_sigma'])
+    rng = np.random.default_rng([p['world.seed'], 1])
+    cameras = [true_camera(c, spread, rng) for c in ground.cameras]
+    intrinsics_only = replace(spread, position_sigma=0.0, angle_sigma=0.0)
+    return (replace(ground, cameras=cameras),
+            replace(onboard,   # its pose error is the mount's: R, t of its Camera are unused
+                    camera=true_camera(onboard.camera, intrinsics_only, rng),
+                    camera_to_body=true_mount(onboard.camera_to_body, spread, rng)))
+
+
+def ideal_lens(camera: Camera) -> Camera:
+    """The camera without its lens distortion."""
+    return replace(camera, D=np.zeros(0))
 
 
 class CameraOutput:
@@ -99,40 +198,84 @@ class SimWorldNode(Node):
                                                      if s.name.startswith('camera')]))
         p = declare(self, PARAMS)
         self.frame_id = p['world.frame_id']
+        if not p['distortion.enabled']:
+            ground = replace(ground, cameras=[ideal_lens(c) for c in ground.cameras])
+            onboard = replace(onboard, camera=ideal_lens(onboard.camera))
+        nominal_ground, nominal_onboard = ground, onboard    # what the nodes are given
+        if p['calibration.enabled']:
+            ground, onboard = true_rig(ground, onboard, p)
         try:
             ground_scene = GroundScene(ground, background=p['ground.background'],
-                                       noise_sigma=p['ground.noise_sigma'], seed=p['world.seed'])
+                                       noise_sigma=0.0, seed=p['world.seed'])
         except FileNotFoundError as err:
             raise ValueError(f'ground.background: {err}') from None
-        onboard_scene = OnboardScene(onboard.camera, onboard.camera_to_body,
-                                     noise_sigma=p['onboard.noise_sigma'], seed=p['world.seed'])
-        try:
-            vehicle = MavlinkVehicle(VehicleConfig(
-                connection=p['vehicle.connection'], system_id=p['vehicle.system_id'],
-                rate=p['vehicle.rate'], ready_delay=p['vehicle.ready_delay'],
-                autopilot=p['vehicle.autopilot']))
-        except OSError as err:
-            raise ValueError(f"vehicle.connection: cannot serve {p['vehicle.connection']}: "
-                             f'{err.strerror or err}') from None
-        self.world = SimWorld(vehicle.start(), ground_scene, onboard_scene,
-                              p['onboard.min_height'])
+        onboard_scene = OnboardScene(onboard.camera, onboard.camera_to_body, noise_sigma=0.0)
+        seeds = np.random.SeedSequence(p['world.seed']).spawn(len(ground.cameras) + 3)
+        self.ground_effects = [
+            CameraEffects(effects_config(p, p['ground.noise_sigma']), (c.height, c.width), s)
+            for c, s in zip(ground.cameras, seeds)]
+        self.onboard_effects = CameraEffects(effects_config(p, p['onboard.noise_sigma']),
+                                             (onboard.camera.height, onboard.camera.width),
+                                             seeds[-3])
+        if p['latency.jitter'] > p['latency.mean']:
+            raise ValueError(f"latency.jitter: {p['latency.jitter']:g} s is more than "
+                             f"latency.mean {p['latency.mean']:g} s")
+        self.latency = self.delay_line = None
+        if p['latency.enabled']:
+            self.delay_line = DelayLine('sim_world latency')
+            self.latency = {which: Latency(p['latency.mean'], p['latency.jitter'],
+                                           np.random.default_rng(s))
+                            for which, s in zip(('ground', 'onboard'), seeds[-2:])}
+        self.dt = {'ground': 1.0 / p['ground.rate'] if p['ground.rate'] > 0 else 0.0,
+                   'onboard': 1.0 / p['onboard.rate'] if p['onboard.rate'] > 0 else 0.0}
+        vehicle, where = self._vehicle(p)
+        self.world = SimWorld(vehicle, ground_scene, onboard_scene, p['onboard.min_height'])
 
         quality = p['world.jpeg_quality']
-        self.cameras = [CameraOutput(self, cam.name, cam, quality) for cam in ground.cameras]
-        self.onboard_camera = CameraOutput(self, 'onboard', onboard.camera, quality)
+        self.cameras = [CameraOutput(self, cam.name, cam, quality)
+                        for cam in nominal_ground.cameras]
+        self.onboard_camera = CameraOutput(self, 'onboard', nominal_onboard.camera, quality)
         self.truth_pub = self.create_publisher(PoseStamped, 'truth/pose', 50)
-        self.counts = dict(ground_frames=0, onboard_frames=0, onboard_too_low=0)
+        self.counts = dict(ground_frames=0, onboard_frames=0, onboard_too_low=0,
+                           dropped_frames=0)
         self.render_ms = dict(ground_render_ms=float('nan'), onboard_render_ms=float('nan'))
         if p['ground.rate'] > 0:
             self.create_timer(1.0 / p['ground.rate'], self.on_ground)
         if p['onboard.rate'] > 0:
             self.create_timer(1.0 / p['onboard.rate'], self.on_onboard)
-        self.diag = Diagnostics(self, hardware_id=p['vehicle.connection'])
+        self.diag = Diagnostics(self, hardware_id=where)
         self.create_timer(p['world.diagnostics_period'], self.publish_diagnostics)
+        self.get_logger().info(f'vehicle: {where}; {len(self.cameras)} ground cameras at '
+                               f'{p["ground.rate"]:g} Hz, onboard camera at '
+                               f'{p["onboard.rate"]:g} Hz')
+
+    @staticmethod
+    def _vehicle(p: dict) -> tuple[Vehicle, str]:
+        """The world's vehicle, started, and where it is."""
+        if p['vehicle.model'] == 'sitl':
+            url = p['vehicle.sitl_connection']
+            try:
+                truth = SitlTruth(url, target_system=p['vehicle.system_id']).start()
+                truth.wait(SITL_WAIT_S)
+            except (OSError, TimeoutError) as err:
+                raise ValueError(f'vehicle.sitl_connection: {url}: '
+                                 f'{getattr(err, "strerror", None) or err}') from None
+            return truth, f'ArduPilot SITL, truth from SIM_STATE on {url}'
+        try:
+            vehicle = MavlinkVehicle(VehicleConfig(
+                connection=p['vehicle.connection'], system_id=p['vehicle.system_id'],
+                rate=p['vehicle.rate'], ready_delay=p['vehicle.ready_delay'],
+                autopilot=p['vehicle.autopilot'],
+                gust_sigma=p['wind.gust_sigma'] if p['wind.enabled'] else 0.0,
+                gust_time_constant=p['wind.time_constant'],
+                drift_rate=p['drift.rate'] if p['drift.enabled'] else 0.0,
+                seed=p['world.seed']))
+        except OSError as err:
+            raise ValueError(f"vehicle.connection: cannot serve {p['vehicle.connection']}: "
+                             f'{err.strerror or err}') from None
         host, port = vehicle.address
-        self.get_logger().info(f'vehicle on {p["vehicle.connection"]} ({host}:{port}); '
-                               f'{len(self.cameras)} ground cameras at {p["ground.rate"]:g} Hz, '
-                               f'onboard camera at {p["onboard.rate"]:g} Hz')
+        return (SimulatedVehicle(vehicle.start()),
+                f'simulated {p["vehicle.autopilot"]} on {p["vehicle.connection"]} ({host}:{port})')
 
     def _sample(self) -> tuple[VehicleState, Header]:
         """The vehicle's truth now, published on truth/pose, and the stamp of that instant."""
@@ -141,13 +284,38 @@ class SimWorldNode(Node):
         self.truth_pub.publish(pose_to_msg(state.position, state.quaternion, header))
         return state, header
 
+    def _capture(self, effects: CameraEffects, image: np.ndarray, velocity: np.ndarray,
+                 which: str) -> np.ndarray | None:
+        """The frame the camera delivers of an exact render; None (counted) if dropped."""
+        frame = effects(image, velocity, self.dt[which])
+        if frame is None:
+            self.counts['dropped_frames'] += 1
+        return frame
+
+    def _deliver(self, which: str, header: Header, publish: Callable[[], None]) -> None:
+        """Publish now, or with latency on, once the frame's delay after its stamp is over."""
+        if self.latency is None:
+            publish()
+            return
+        capture = stamp_to_ns(header.stamp) * 1e-9
+        wait = capture + self.latency[which].offset(capture) - \
+            self.get_clock().now().nanoseconds * 1e-9
+        self.delay_line.put(time.monotonic() + wait, publish)
+
     def on_ground(self) -> None:
         state, header = self._sample()
         start = time.perf_counter()
         images = self.world.ground_images(state)
+        velocities = self.world.ground_image_velocities(state)
+        frames = [self._capture(fx, image, v, 'ground')
+                  for fx, image, v in zip(self.ground_effects, images, velocities)]
         self.render_ms['ground_render_ms'] = round((time.perf_counter() - start) * 1e3, 2)
-        for camera, image in zip(self.cameras, images):
-            camera.publish(image, header.stamp)
+
+        def publish() -> None:
+            for camera, frame in zip(self.cameras, frames):
+                if frame is not None:
+                    camera.publish(frame, header.stamp)
+        self._deliver('ground', header, publish)
         self.counts['ground_frames'] += 1
 
     def on_onboard(self) -> None:
@@ -157,8 +325,12 @@ class SimWorldNode(Node):
         if image is None:
             self.counts['onboard_too_low'] += 1
             return
+        frame = self._capture(self.onboard_effects, image,
+                              self.world.onboard_image_velocity(state), 'onboard')
         self.render_ms['onboard_render_ms'] = round((time.perf_counter() - start) * 1e3, 2)
-        self.onboard_camera.publish(image, header.stamp)
+        if frame is not None:
+            self._deliver('onboard', header,
+                          lambda: self.onboard_camera.publish(frame, header.stamp))
         self.counts['onboard_frames'] += 1
 
     def publish_diagnostics(self) -> None:
@@ -173,6 +345,8 @@ class SimWorldNode(Node):
             'yaw': f'{state.yaw:.4f}'})
 
     def destroy_node(self) -> None:
+        if self.delay_line is not None:
+            self.delay_line.close()
         self.world.close()
         super().destroy_node()
 

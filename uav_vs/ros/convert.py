@@ -12,13 +12,20 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point32, Polygon, PolygonStamped, PoseStamped, TwistStamped
+from geometry_msgs.msg import (Point32, Polygon, PolygonStamped, PoseStamped, TransformStamped,
+                               TwistStamped)
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
+from uav_vs.vision.camera import CalibrationError, Camera
+
 _CHANNELS = {'bgr8': 3, 'rgb8': 3, 'bgra8': 4, 'rgba8': 4, 'mono8': 1}
+MAX_IMAGE_PIXELS = 1 << 26    # 8192 x 8192; larger images are refused, never decoded
+_PNG_SIGNATURE = b'\x89PNG\r\n\x1a\n'
+# JPEG start-of-frame markers (they carry the size): C0-CF but DHT, JPG and DAC.
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 _CDR_BYTE_ORDER = {b'\x00\x00': '>', b'\x00\x01': '<'}   # encapsulation CDR_BE, CDR_LE
 
 
@@ -157,15 +164,59 @@ def pose_to_msg(position: np.ndarray, quaternion_xyzw: np.ndarray, header: Heade
 
 
 def msg_to_pose(msg: PoseStamped) -> tuple[np.ndarray, np.ndarray]:
-    """PoseStamped to (position (3,), quaternion xyzw (4,))."""
+    """PoseStamped to (position (3,), unit quaternion xyzw (4,)); see unit_quaternion."""
     p, q = msg.pose.position, msg.pose.orientation
-    return np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w])
+    return np.array([p.x, p.y, p.z]), unit_quaternion(q.x, q.y, q.z, q.w)
+
+
+def transform_to_msg(translation: np.ndarray, quaternion_xyzw: np.ndarray, header: Header,
+                     child_frame_id: str) -> TransformStamped:
+    """TransformStamped header.frame_id -> child_frame_id: the child's pose in the parent."""
+    msg = TransformStamped(header=header, child_frame_id=child_frame_id)
+    v = msg.transform.translation
+    v.x, v.y, v.z = map(float, translation)
+    q = msg.transform.rotation
+    q.x, q.y, q.z, q.w = map(float, quaternion_xyzw)
+    return msg
+
+
+def msg_to_transform(msg: TransformStamped) -> tuple[np.ndarray, np.ndarray]:
+    """TransformStamped to (translation (3,), unit quaternion xyzw (4,)); see unit_quaternion."""
+    v, q = msg.transform.translation, msg.transform.rotation
+    return np.array([v.x, v.y, v.z]), unit_quaternion(q.x, q.y, q.z, q.w)
+
+
+# |q|^2 of a quaternion taken as a rotation. A quaternion names a rotation at any scale
+# (tf2's rotation matrix reads it so), and senders give unit ones (to ~1e-6 from tf2, to 3-4
+# digits by hand): one within a factor of ten of unit length is normalised; zero (an
+# unset orientation), non-finite or further off is no rotation.
+_QUATERNION_NORM2 = (0.1 ** 2, 10.0 ** 2)
+
+
+def unit_quaternion(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """The xyzw quaternion normalised (as is when unit to rounding); MessageError when its
+    length is not finite or not within a factor of ten of 1."""
+    n2 = _quaternion_norm2(x, y, z, w)
+    if abs(n2 - 1.0) <= 1e-12:
+        return np.array([x, y, z, w])
+    return np.array([x, y, z, w]) / math.sqrt(n2)
 
 
 def yaw_of(quaternion_xyzw: np.ndarray) -> float:
-    """Yaw (rotation about z, rad) of an xyzw quaternion."""
-    x, y, z, w = quaternion_xyzw
-    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    """Yaw (rotation about z, rad) of an xyzw quaternion, at any scale; MessageError as
+    unit_quaternion."""
+    x, y, z, w = np.asarray(quaternion_xyzw, float).tolist()   # floats: faster than np scalars
+    _quaternion_norm2(x, y, z, w)
+    return math.atan2(2 * (w * z + x * y), w * w + x * x - y * y - z * z)
+
+
+def _quaternion_norm2(x: float, y: float, z: float, w: float) -> float:
+    """|q|^2, checked to lie in [0.1^2, 10^2] (NaN and inf fail the comparison)."""
+    n2 = x * x + y * y + z * z + w * w
+    if not _QUATERNION_NORM2[0] <= n2 <= _QUATERNION_NORM2[1]:
+        raise MessageError(f'quaternion ({x:.4g}, {y:.4g}, {z:.4g}, {w:.4g}) is no rotation: '
+                           f'length {math.sqrt(n2):.4g}, expected 1')
+    return n2
 
 
 def twist_to_msg(linear: np.ndarray, angular: np.ndarray, header: Header) -> TwistStamped:
@@ -185,20 +236,52 @@ def camera_info(fields: dict, header: Header) -> CameraInfo:
     return CameraInfo(header=header, **fields)
 
 
+def camera_from_info(msg: CameraInfo, name: str = 'camera') -> Camera:
+    """A Camera (intrinsics only: R = I, t = 0) from a CameraInfo of any OpenCV D.
+
+    `plumb_bob`, `rational_polynomial` or an empty model with D of 0, 4, 5, 8, 12 or 14
+    coefficients; other models (`equidistant`: the fisheye lens) or lengths raise
+    MessageError in one line. A width or height of 0 is taken as unknown.
+    """
+    model = msg.distortion_model
+    if model not in ('', 'plumb_bob', 'rational_polynomial'):
+        raise MessageError(f'camera_info: distortion model {model!r} is not supported '
+                           '(plumb_bob or rational_polynomial)')
+    try:
+        return Camera(name, msg.width or None, msg.height or None, np.asarray(msg.k, float),
+                      np.asarray(msg.d, float), frame_id=msg.header.frame_id)
+    except CalibrationError as err:
+        raise MessageError(f'camera_info: {err}') from None
+
+
 def _check_size(width: int, height: int, expected: tuple[int, int] | None) -> None:
-    if expected is not None and (width, height) != tuple(expected):
-        raise MessageError(f'image is {width}x{height}, expected {expected[0]}x{expected[1]}')
+    """Refuse an image not of the expected size (a configured, valid one) or, with none
+    expected, an empty or absurdly large image."""
+    if expected is not None:
+        if (width, height) != tuple(expected):
+            raise MessageError(f'image is {width}x{height}, expected {expected[0]}x{expected[1]}')
+        return
+    if width <= 0 or height <= 0 or width * height > MAX_IMAGE_PIXELS:
+        raise MessageError(f'image size {width}x{height} refused (empty, or over '
+                           f'{MAX_IMAGE_PIXELS} pixels)')
 
 
 def odometry_to_msg(position: np.ndarray, quaternion_xyzw: np.ndarray, velocity: np.ndarray,
-                    angular_velocity: np.ndarray, header: Header, child_frame_id: str) -> Odometry:
+                    angular_velocity: np.ndarray, header: Header, child_frame_id: str,
+                    pose_covariance: np.ndarray | None = None,
+                    twist_covariance: np.ndarray | None = None) -> Odometry:
     """nav_msgs/Odometry of a body: pose in header.frame_id, twist in child_frame_id (REP-105).
 
     `velocity` is given in the parent frame (as autopilots report it) and rotated into
     the child frame here: v_child = R(q)^T v_parent. `angular_velocity` is already in
-    the child frame. Covariances are left zero (unknown).
+    the child frame. The covariances (6x6, the message's frames) are zero (unknown)
+    when not given.
     """
     msg = Odometry(header=header, child_frame_id=child_frame_id)
+    if pose_covariance is not None:
+        msg.pose.covariance = np.asarray(pose_covariance, dtype=float).reshape(36)
+    if twist_covariance is not None:
+        msg.twist.covariance = np.asarray(twist_covariance, dtype=float).reshape(36)
     p = msg.pose.pose.position
     p.x, p.y, p.z = map(float, position)
     o = msg.pose.pose.orientation
@@ -214,10 +297,11 @@ def odometry_to_msg(position: np.ndarray, quaternion_xyzw: np.ndarray, velocity:
 
 
 def msg_to_odometry(msg: Odometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Odometry to (position, quaternion xyzw, linear and angular velocity in the child frame)."""
+    """Odometry to (position, unit quaternion xyzw, linear and angular velocity in the child
+    frame); see unit_quaternion."""
     p, q = msg.pose.pose.position, msg.pose.pose.orientation
     v, w = msg.twist.twist.linear, msg.twist.twist.angular
-    return (np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w]),
+    return (np.array([p.x, p.y, p.z]), unit_quaternion(q.x, q.y, q.z, q.w),
             np.array([v.x, v.y, v.z]), np.array([w.x, w.y, w.z]))
 
 
@@ -241,9 +325,41 @@ def compressed_to_gray(msg: CompressedImage,
 
 
 def _decode(msg: CompressedImage, expected_size: tuple[int, int] | None, flags: int) -> np.ndarray:
+    """Decode a JPEG or PNG whose header says it has an acceptable size (checked first,
+    so a wrong or absurd size costs no decoding)."""
+    _check_size(*compressed_size(msg), expected_size)
     img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), flags)
     if img is None:
         raise MessageError(f'cannot decode compressed image (format {msg.format!r}, '
                            f'{len(msg.data)} bytes)')
     _check_size(img.shape[1], img.shape[0], expected_size)
     return img
+
+
+def compressed_size(msg: CompressedImage) -> tuple[int, int]:
+    """(width, height) read from a JPEG's start of frame or a PNG's IHDR, not decoding."""
+    data = memoryview(msg.data).cast('B')
+    try:
+        if data[:8] == _PNG_SIGNATURE and data[12:16] == b'IHDR':
+            return struct.unpack_from('>II', data, 16)
+        if data[:2] == b'\xff\xd8':
+            return _jpeg_size(data)
+    except (struct.error, IndexError):
+        pass
+    raise MessageError(f'cannot decode compressed image (format {msg.format!r}, '
+                       f'{len(msg.data)} bytes): no JPEG or PNG header')
+
+
+def _jpeg_size(data: memoryview) -> tuple[int, int]:
+    """The size in a JPEG's first start-of-frame segment (IndexError if there is none)."""
+    pos = 2
+    while data[pos] == 0xFF:
+        marker = data[pos + 1]
+        if marker in _JPEG_SOF:
+            height, width = struct.unpack_from('>HH', data, pos + 5)
+            return width, height
+        if marker == 0xFF:                       # fill byte
+            pos += 1
+        else:
+            pos += 2 + struct.unpack_from('>H', data, pos + 2)[0]
+    raise IndexError('no start of frame')

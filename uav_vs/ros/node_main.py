@@ -1,22 +1,57 @@
-"""Start-up and shutdown shared by every node, and its diagnostics helper."""
+"""Start-up and shutdown shared by every node, and its diagnostics helper.
+
+Every node process spins its node (or nodes, for a process holding several) in one
+executor chosen by the environment variable UAV_VS_EXECUTOR:
+
+- `events` (the default): rclpy.experimental.EventsExecutor, event-driven in C++; a
+  message costs one callback, with no wait set rebuilt in Python on every wake.
+- `single`: rclpy's SingleThreadedExecutor, the wait-set loop `rclpy.spin` runs.
+
+A node that needs one of them passes it to run() and ignores the variable: the
+mavlink_relay_node's services await worker threads through `node.executor`, which
+EventsExecutor (rclpy 7.1.6) neither sets nor resumes.
+"""
 import ctypes
+import faulthandler
+import os
+import re
+import signal
 import sys
+import threading
 import time
-from typing import Callable
+from typing import Callable, NoReturn, Sequence
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.event_handler import PublisherEventCallbacks
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 
-from uav_vs.ros.params_file import check_params_files
+from uav_vs.ros.params_file import check_args
 
 # For create_publisher(event_callbacks=...): no event handlers. rclpy's two default ones
 # (they log an incompatible QoS or type) are polled on every executor wake, ~10 us each;
 # the subscribing side reports the same mismatches.
 NO_PUBLISHER_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
+
+# A stopping node that has not finished tearing down (rclpy, the DDS participant) after
+# this long exits anyway (status 1, its threads' stacks printed): a node asked to stop
+# always stops.
+SHUTDOWN_GRACE_S = 4.0
+
+EXECUTOR_ENV = 'UAV_VS_EXECUTOR'
+EXECUTORS: dict[str, Callable[[], Executor]] = {'events': EventsExecutor,
+                                                'single': SingleThreadedExecutor}
+DEFAULT_EXECUTOR = 'events'
+# Executors spin one callback at a time, and at least this often see whether the context
+# is still up: EventsExecutor.spin() (rclpy 7.1.6) never returns once a signal has shut
+# the context down.
+SPIN_CHECK_S = 0.5
+
+# Set by the first SIGINT: an exception that comes out of rclpy after it is the interrupt.
+_INTERRUPTED = threading.Event()
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 _HEAP_KEEP_BYTES = 32 << 20
@@ -36,35 +71,106 @@ def keep_freed_memory() -> None:
         mallopt(_M_TRIM_THRESHOLD, _HEAP_KEEP_BYTES)
 
 
-def run(factory: Callable[[], Node], name: str, args: list[str] | None = None) -> None:
-    """Keep freed memory, rclpy.init, build the node, spin until SIGINT/SIGTERM, shut down.
+def executor_choice(fixed: str | None = None) -> tuple[str, str | None]:
+    """`fixed`, else the executor UAV_VS_EXECUTOR names (DEFAULT_EXECUTOR when unset or
+    empty), and a one-line problem when it names none of EXECUTORS."""
+    choice = fixed or os.environ.get(EXECUTOR_ENV) or DEFAULT_EXECUTOR
+    if choice in EXECUTORS:
+        return choice, None
+    return choice, f'{EXECUTOR_ENV}={choice!r}: expected one of {", ".join(EXECUTORS)}'
 
-    A configuration error (a `--params-file` that rcl would refuse: missing, not
-    YAML, a list of mixed types; or a ValueError raised while the node is being
-    built) is logged as one FATAL line naming the parameter and exits with status 2.
+
+def run(factory: Callable[[], Node | Sequence[Node]], name: str,
+        args: list[str] | None = None, executor: str | None = None) -> NoReturn:
+    """Keep freed memory, rclpy.init, build the node(s), spin them in one executor
+    (`executor`, else see executor_choice) until SIGINT/SIGTERM, shut down and
+    exit 0 (see _exit_after_shutdown).
+
+    A configuration error (an unknown UAV_VS_EXECUTOR; a `--params-file` or `-p` rule
+    that rcl would refuse or silently misread, see params_file; or a ValueError raised
+    while a node is being built) is logged as one FATAL line naming the variable, file,
+    rule or parameter, and exits with status 2.
     """
     keep_freed_memory()
-    problem = check_params_files(sys.argv if args is None else args)
+    faulthandler.enable()   # a crash in native code prints every thread's Python stack
+    choice, problem = executor_choice(executor)
+    problem = problem or check_args(sys.argv if args is None else args)
+    if problem is None:
+        # rclpy's SIGINT handler chains to this one: the first Ctrl-C interrupts, later
+        # ones (under `ros2 launch` a node gets two) cannot cut the shutdown short.
+        signal.signal(signal.SIGINT, _interrupt_once)
+        try:
+            rclpy.init(args=args)
+        except RuntimeError as err:     # rcl refused an argument the checks let through
+            problem = _rcl_refusal(str(err))
     if problem is not None:
         rclpy.logging.get_logger(name).fatal(problem)
         sys.exit(2)
-    rclpy.init(args=args)
     try:
-        node = factory()
+        built = factory()
     except ValueError as err:
         rclpy.logging.get_logger(name).fatal(str(err))
         rclpy.try_shutdown()
         sys.exit(2)
     except (KeyboardInterrupt, ExternalShutdownException):
         rclpy.try_shutdown()
-        return
+        _exit_after_shutdown()
+    nodes = [built] if isinstance(built, Node) else list(built)
+    spinner = EXECUTORS[choice]()
     try:
-        rclpy.spin(node)
+        for node in nodes:
+            spinner.add_node(node)
+        while rclpy.ok():
+            spinner.spin_once(timeout_sec=SPIN_CHECK_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # A SIGINT while rclpy's C++ converts a message taken comes out as RuntimeError
+        # ("Unable to convert call argument"), as does a take from a context shut down.
+        if rclpy.ok() and not _INTERRUPTED.is_set():
+            raise
     finally:
-        node.destroy_node()
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        # faulthandler's timer is a C thread: it needs no GIL, which a teardown hung in
+        # rclpy's C++ (seen destroying the DDS participant) holds. It prints every thread's
+        # stack and exits 1; a shutdown that finishes exits 0 first.
+        faulthandler.dump_traceback_later(SHUTDOWN_GRACE_S, exit=True)
+        for node in nodes:
+            spinner.remove_node(node)
+        spinner.shutdown()
+        for node in nodes:
+            node.destroy_node()
         rclpy.try_shutdown()
+    _exit_after_shutdown()
+
+
+def _exit_after_shutdown() -> NoReturn:
+    """Exit 0 once the nodes and rclpy are shut down, without the interpreter's teardown.
+
+    The nodes have left the graph by then (destroy_node), and their log is flushed
+    (try_shutdown). What the interpreter would still do, finalising modules and the
+    native libraries' state, was seen to take longer than launch waits on a loaded machine
+    (past SIGINT's 5 s and SIGTERM's 10 s), so that `ros2 launch` killed a node that had
+    stopped cleanly.
+    """
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
+
+
+def _interrupt_once(signum: int, frame) -> None:
+    """KeyboardInterrupt for the first SIGINT; every later one is ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _INTERRUPTED.set()
+    raise KeyboardInterrupt
+
+
+def _rcl_refusal(message: str) -> str:
+    """rcl's "Couldn't parse ... '<argument>'. Error: <why>, at <file:line>..." as one line."""
+    match = re.search(r"Couldn't parse [\w ]+: '(.*)'\. Error: (.*?)(, at [^,]*)*$", message,
+                      re.DOTALL)
+    text = f'{match[1]}: {match[2]}' if match else message
+    return ' '.join(text.split())
 
 
 class QuietPublisherNode(Node):

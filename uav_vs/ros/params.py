@@ -4,12 +4,18 @@ Every parameter goes through `declare`: its raw value (from a params file or `-p
 is read, checked and coerced here (an integer is accepted where a double is
 expected, as YAML writes `500` for `500.0`), then the parameter is declared with its
 ROS type, description and range so `ros2 param describe` shows them.
+
+At run time (`ros2 param set`, the SetParameters services) a parameter declared
+`live` is checked by the same rules, then by the node's own `prepare` hook (see
+`LiveParams`), which builds the new core objects or refuses the change; every other
+parameter is declared read-only, so rclpy refuses to set it.
 """
 import array
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -38,6 +44,7 @@ class Param:
     high: float | None = None
     choices: Sequence[str] = field(default_factory=tuple)
     size: int | None = None          # exact length, for arrays
+    live: bool = False               # takes effect when set at run time (else read-only)
 
     def expected(self) -> str:
         what = _WHAT[self.type]
@@ -69,7 +76,11 @@ def _declare_one(node: Node, spec: Param) -> Any:
             raise ParameterError(f'{spec.name}: missing, expected {spec.expected()}')
         raw = spec.default
     value = _coerce(spec, raw)
-    node.declare_parameter(spec.name, value, _descriptor(spec), ignore_override=True)
+    if value == [] and spec.live:      # rclpy would type an empty list as bytes: type it first
+        node.declare_parameter(spec.name, spec.type, _descriptor(spec), ignore_override=True)
+        node.set_parameters([Parameter(spec.name, spec.type, [])])
+    else:
+        node.declare_parameter(spec.name, value, _descriptor(spec), ignore_override=True)
     return value
 
 
@@ -106,7 +117,8 @@ def _coerce(spec: Param, raw: Any) -> Any:
 
 def _descriptor(spec: Param) -> ParameterDescriptor:
     desc = ParameterDescriptor(type=spec.type.value, description=spec.description,
-                               additional_constraints=f'expected {spec.expected()}')
+                               additional_constraints=f'expected {spec.expected()}',
+                               read_only=not spec.live)
     if spec.low is not None and spec.high is not None:
         if spec.type == T.DOUBLE:
             desc.floating_point_range = [FloatingPointRange(
@@ -115,3 +127,71 @@ def _descriptor(spec: Param) -> ParameterDescriptor:
             desc.integer_range = [IntegerRange(
                 from_value=int(spec.low), to_value=int(spec.high), step=1)]
     return desc
+
+
+# A node's hook: the full set of values with the changes in, and the changed names;
+# it raises ParameterError (or ValueError) to refuse, or returns what makes them take effect.
+Prepare = Callable[[dict[str, Any], set[str]], Callable[[], None]]
+_ARRAYS = (T.DOUBLE_ARRAY, T.INTEGER_ARRAY, T.STRING_ARRAY, T.BOOL_ARRAY)
+
+
+class LiveParams:
+    """Run-time changes of a node's live parameters, checked as at start-up, then applied.
+
+    A change (one parameter, or several set atomically) is checked against its spec,
+    then `prepare(values, changed)` gets every value with the change in: it checks what
+    must hold together (a fence's corners, two rates) and builds the new core objects,
+    raising ParameterError to refuse; the reason goes back in SetParametersResult. The
+    function it returns runs once rclpy has stored the values, so what the node uses
+    and what `ros2 param get` shows never differ.
+    An integer is taken where a double is declared (`ros2 param set ... max_speed 1`).
+    """
+
+    def __init__(self, node: Node, specs: Sequence[Param], values: dict[str, Any],
+                 prepare: Prepare) -> None:
+        self._node, self._prepare = node, prepare
+        self._specs = {spec.name: spec for spec in specs}
+        self.values = dict(values)
+        self._pending: tuple[dict[str, Any], Callable[[], None]] | None = None
+        node.add_pre_set_parameters_callback(self._widen)
+        node.add_on_set_parameters_callback(self._check)
+        node.add_post_set_parameters_callback(self._commit)
+
+    def _widen(self, params: list[Parameter]) -> list[Parameter]:
+        """Integers where doubles are declared become doubles, an empty list the declared type."""
+        return [self._widened(p) for p in params]
+
+    def _widened(self, p: Parameter) -> Parameter:
+        if not self._node.has_parameter(p.name):
+            return p
+        want = T(self._node.describe_parameter(p.name).type)
+        value = list(p.value) if isinstance(p.value, (list, tuple, array.array)) else p.value
+        if want == T.DOUBLE and p.type_ == T.INTEGER:
+            return Parameter(p.name, T.DOUBLE, float(value))
+        if want == T.DOUBLE_ARRAY and p.type_ == T.INTEGER_ARRAY:
+            return Parameter(p.name, T.DOUBLE_ARRAY, [float(v) for v in value])
+        if want in _ARRAYS and p.type_ in (*_ARRAYS, T.BYTE_ARRAY) and not value:
+            return Parameter(p.name, want, [])
+        return p
+
+    def _check(self, params: list[Parameter]) -> SetParametersResult:
+        changes = {}
+        try:
+            for p in params:
+                value = list(p.value) if isinstance(p.value, array.array) else p.value
+                if p.name in self._specs:
+                    changes[p.name] = _coerce(self._specs[p.name], value)
+                elif not self._node.has_parameter(p.name):
+                    raise ParameterError(f'{p.name}: unknown parameter')
+            values = {**self.values, **changes}
+            commit = self._prepare(values, set(changes)) if changes else None
+        except ValueError as err:          # ParameterError, or a core object's own check
+            return SetParametersResult(successful=False, reason=str(err))
+        self._pending = (values, commit) if commit else None
+        return SetParametersResult(successful=True)
+
+    def _commit(self, params: list[Parameter]) -> None:
+        if self._pending is not None:
+            self.values, commit = self._pending
+            self._pending = None
+            commit()

@@ -13,7 +13,7 @@ lens distortion), so the ground truth is exact:
   so a landmark keeps its hue);
   silhouette edges are anti-aliased from the ray's distance to the surface;
 - global lighting drifts slowly (gain and sun direction), and Gaussian sensor noise is
-  added (a precomputed noise field shifted by a random offset every frame).
+  added (uav_vs.sim.camera_effects.GaussianNoise).
 
 The trajectory (`figure_eight`) gives the truth pose: position in `world` ENU and the
 base_link (FLU) attitude, tilted with the acceleration as a multirotor is.
@@ -24,6 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from uav_vs.sim.camera_effects import GaussianNoise
 from uav_vs.vision.camera import Camera
 from uav_vs.vision.ground_config import GroundConfig
 
@@ -124,11 +125,9 @@ class GroundScene:
             raise FileNotFoundError(f'cannot read {ASSETS / background}')
         self._background = [_ground_image(c, r, texture, ground_size)
                             for c, r in zip(self.cameras, self._rays)]
-        self._rng = np.random.default_rng(seed)
         h = max(c.height for c in self.cameras)
         w = max(c.width for c in self.cameras)
-        self._noise = np.round(self._rng.normal(0.0, noise_sigma, (h + 64, w + 64, 3))
-                               ).astype(np.int16)
+        self._noise = GaussianNoise(noise_sigma, (h, w), np.random.default_rng(seed))
 
     def lighting(self, t: float) -> tuple[float, np.ndarray]:
         """Global gain and sun direction (world, unit, towards the sun) at time t, drifting
@@ -148,9 +147,7 @@ class GroundScene:
         for k, cam in enumerate(self.cameras):
             img = cv2.convertScaleAbs(self._background[k], alpha=gain)
             self._draw_vehicle(k, img, pose, gain, sun, info)
-            dy, dx = self._rng.integers(0, 64, 2)
-            noise = self._noise[dy:dy + cam.height, dx:dx + cam.width]
-            images.append(cv2.add(img, noise, dtype=cv2.CV_8U))
+            images.append(self._noise(img))
         return images, info
 
     def _draw_vehicle(self, k: int, img: np.ndarray, pose: Pose, gain: float, sun: np.ndarray,

@@ -8,7 +8,11 @@ Dynamics, in the autopilot's own local NED frame with home and the ground at z =
 
     dv/dt   = (v_target - v) / tau          velocity tracking, first-order lag
     dr/dt   = (r_target - r) / tau_yaw      yaw rate r (about z down), dpsi/dt = r
-    dp/dt   = v                             ground contact: z <= 0, no speed into the ground
+    dp/dt   = v + g                         ground contact: z <= 0, no speed into the ground
+
+with g a horizontal wind gust (`gust_sigma`, Ornstein-Uhlenbeck, zero in still air). What
+it reports as its estimate (LOCAL_POSITION_NED, ODOMETRY, GLOBAL_POSITION_INT) is p plus
+a random-walk drift (`drift_rate`, zero by default); GPS_RAW_INT is the true position.
 
 What it does like ArduPilot Copter 4.x (what the relay relies on):
 - HEARTBEAT (1 Hz) with custom_mode: STABILIZE 0, GUIDED 4, LAND 9; type QUADROTOR.
@@ -35,12 +39,16 @@ What it does like ArduPilot Copter 4.x (what the relay relies on):
 - LAND descends at land_speed and disarms on touchdown. STABILIZE simulates no pilot
   sticks: the vehicle holds still.
 - MAVLink 2 signing when a key is configured or installed by SETUP_SIGNING (no ACK,
-  ignored while armed): outgoing signed, unsigned incoming dropped.
+  ignored while armed): outgoing signed, unsigned incoming dropped, a signature checked
+  before its timestamp counts (link.verify_signatures_first).
 
 With `autopilot='px4'` it behaves like PX4 multicopter instead, where PX4 differs:
 - HEARTBEAT of MAV_AUTOPILOT_PX4, custom_mode = main << 16 | sub << 24: POSCTL (at
   boot), AUTO.LOITER, AUTO.TAKEOFF, AUTO.LAND, OFFBOARD. Telemetry streams without being
-  asked (SET_MESSAGE_INTERVAL still changes the rates); no EKF_STATUS_REPORT.
+  asked (SET_MESSAGE_INTERVAL still changes the rates); no EKF_STATUS_REPORT. ODOMETRY
+  when asked, as PX4's stream sends it: frame LOCAL_NED, velocity frame LOCAL_NED, the
+  estimate's variances (`odometry_variance`) on the diagonals, NaN elsewhere and for the
+  body rates.
 - Refusals are MAV_RESULT_TEMPORARILY_REJECTED, as PX4's commander answers a denied
   mode change. OFFBOARD is refused unless setpoints have streamed at > 2 Hz for more
   than a second; it is left for AUTO.LOITER (hold, what the default offboard-loss action
@@ -64,7 +72,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from uav_vs.autopilot.link import (FORCE_DISARM, POSITION_IGNORE, VELOCITY_IGNORE,
-                                   load_signing_key, mavlink, mavutil)
+                                   load_signing_key, mavlink, mavutil, verify_signatures_first)
 
 ARDUPILOT, PX4 = 'ardupilot', 'px4'
 # The modes simulated and their HEARTBEAT custom_mode: ArduCopter's mode numbers, and
@@ -85,7 +93,7 @@ PX4_STREAMS = {mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0, mavlink.MAVLINK_MSG_ID_SYS
 PX4_TAKEOFF_HEIGHT = 2.5            # MIS_TAKEOFF_ALT [m]
 # What SET_MESSAGE_INTERVAL can stream: PX4 has no EKF_STATUS_REPORT (ardupilotmega).
 STREAMABLE = {ARDUPILOT: frozenset({*PX4_STREAMS, mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT}),
-              PX4: frozenset(PX4_STREAMS)}
+              PX4: frozenset({*PX4_STREAMS, mavlink.MAVLINK_MSG_ID_ODOMETRY})}
 EARTH_RADIUS = 6378137.0
 # EKF_STATUS_REPORT flags before the estimator is ready (attitude and height, no horizontal
 # position: 'constant position' mode) and after (horizontal position, absolute and predicted).
@@ -112,6 +120,18 @@ class VehicleConfig:
     offboard_loss_timeout: float = 1.0  # PX4: OFFBOARD left this long without a setpoint [s]
     home: tuple[float, float, float] = (-35.363261, 149.165230, 584.0)  # lat, lon [deg], AMSL [m]
     signing_key: bytes | None = None
+    # PX4's ODOMETRY: variances of position (N, E, D) [m^2], orientation (roll, pitch,
+    # yaw) [rad^2] and velocity (N, E, D) [m^2/s^2]
+    odometry_variance: tuple = ((0.01, 0.02, 0.04), (1e-4, 2e-4, 4e-4), (0.001, 0.002, 0.003))
+    # Wind gusts: the part of the wind the autopilot's velocity loop has not yet rejected,
+    # a horizontal Ornstein-Uhlenbeck velocity of this spread [m/s] and time constant [s]
+    # added to the flown velocity; 0: still air.
+    gust_sigma: float = 0.0
+    gust_time_constant: float = 1.0
+    # The autopilot's estimate (LOCAL_POSITION_NED, ODOMETRY, GLOBAL_POSITION_INT) drifts
+    # from the truth as a random walk of this rate [m/sqrt(s)] per axis; 0: exact.
+    drift_rate: float = 0.0
+    seed: int = 0                       # of the gusts and the drift
 
 
 @dataclass(frozen=True)
@@ -166,10 +186,12 @@ class _TcpServer(mavutil.mavtcpin):
 
 
 def _server(device: str, system_id: int):
+    """The vehicle's end of the link; signatures verified before any state changes."""
     if device.startswith('tcpin:'):
-        return _TcpServer(device[6:], source_system=system_id, source_component=1)
-    return mavutil.mavlink_connection(device, source_system=system_id, source_component=1,
-                                      udp_timeout=5)
+        return verify_signatures_first(_TcpServer(device[6:], source_system=system_id,
+                                                  source_component=1))
+    return verify_signatures_first(mavutil.mavlink_connection(
+        device, source_system=system_id, source_component=1, udp_timeout=5))
 
 
 class MavlinkVehicle:
@@ -190,7 +212,10 @@ class MavlinkVehicle:
         self._t0 = time.monotonic()
         self._link_up = True
         self._p = np.zeros(3)
-        self._v = np.zeros(3)
+        self._v = np.zeros(3)                   # flown, relative to the air
+        self._gust = np.zeros(3)                # wind not yet rejected: ground = v + gust
+        self._drift = np.zeros(3)               # estimate - truth
+        self._rng = np.random.default_rng(config.seed)
         self._yaw = self._yaw_rate = 0.0
         self._v_target = np.zeros(3)
         self._yaw_rate_target = 0.0
@@ -212,7 +237,8 @@ class MavlinkVehicle:
             mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: self._send_gps_raw,
             mavlink.MAVLINK_MSG_ID_ATTITUDE: self._send_attitude,
             mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._send_local_position,
-            mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._send_global_position}
+            mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._send_global_position,
+            mavlink.MAVLINK_MSG_ID_ODOMETRY: self._send_odometry}
 
     @property
     def address(self) -> tuple[str, int]:
@@ -238,7 +264,8 @@ class MavlinkVehicle:
 
     def truth(self) -> Truth:
         with self._lock:
-            return Truth(time.monotonic(), self._p.copy(), self._v.copy(), self._yaw, self._yaw_rate,
+            return Truth(time.monotonic(), self._p.copy(), self._v + self._gust, self._yaw,
+                         self._yaw_rate,
                          self._armed, self._mode, self._flying,
                          self._conn.mav.signing.secret_key is not None)
 
@@ -283,8 +310,11 @@ class MavlinkVehicle:
             self._text(mavlink.MAV_SEVERITY_CRITICAL, 'Failsafe: no offboard signal, holding')
         if self._armed and not self._flying and now - self._armed_at > cfg.disarm_delay:
             self._disarm('Disarming: takeoff not started')
+        if cfg.drift_rate > 0.0:
+            self._drift += self._rng.normal(0.0, cfg.drift_rate * math.sqrt(dt), 3)
         if not self._flying:
             self._v[:] = 0.0
+            self._gust[:] = 0.0
             self._yaw_rate = 0.0
             return
         v_target, r_target = self._targets_now(now)
@@ -292,7 +322,11 @@ class MavlinkVehicle:
         self._v += (v_target - self._v) * a
         self._yaw_rate += (r_target - self._yaw_rate) * (1.0 - math.exp(-dt / cfg.tau_yaw))
         self._yaw = (self._yaw + self._yaw_rate * dt + math.pi) % (2 * math.pi) - math.pi
-        self._p += self._v * dt
+        if cfg.gust_sigma > 0.0:   # exact discretisation of the OU process
+            k = math.exp(-dt / cfg.gust_time_constant)
+            self._gust[:2] = k * self._gust[:2] + cfg.gust_sigma * math.sqrt(1 - k * k) * \
+                self._rng.standard_normal(2)
+        self._p += (self._v + self._gust) * dt
         if self._p[2] >= 0.0 and v_target[2] >= 0.0:  # touchdown
             self._p[2] = 0.0
             self._v[:] = 0.0
@@ -495,7 +529,7 @@ class MavlinkVehicle:
         self._conn.mav.ekf_status_report_send(flags, 0.02, 0.02, 0.01, 0.01, 0.0)
 
     def _send_gps_raw(self, now: float) -> None:
-        lat, lon, alt = self._lat_lon_alt()
+        lat, lon, alt = self._lat_lon_alt(self._p)
         if self._ready:
             fix, eph, sats = mavlink.GPS_FIX_TYPE_3D_FIX, 80, 12
         else:
@@ -510,21 +544,43 @@ class MavlinkVehicle:
 
     def _send_local_position(self, now: float) -> None:
         if self._ready:  # no EKF origin before
-            self._conn.mav.local_position_ned_send(self._boot_ms(now), *self._p, *self._v)
+            self._conn.mav.local_position_ned_send(self._boot_ms(now), *self._estimate(),
+                                                   *(self._v + self._gust))
 
-    def _lat_lon_alt(self) -> tuple[float, float, float]:
-        """The true position as latitude, longitude [deg] and altitude AMSL [m]."""
+    def _send_odometry(self, now: float) -> None:
+        if not self._ready:
+            return
+        position, orientation, velocity = self.config.odometry_variance
+        pose, twist = [math.nan] * 21, [math.nan] * 21
+        # the diagonal of the 6x6 upper triangle is at 0, 6, 11, 15, 18, 20
+        pose[0], pose[6], pose[11] = position
+        pose[15], pose[18], pose[20] = orientation
+        twist[0], twist[6], twist[11] = velocity
+        c, s = math.cos(self._yaw / 2), math.sin(self._yaw / 2)
+        self._conn.mav.odometry_send(
+            int((now - self._t0) * 1e6), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_NED,
+            *self._estimate(), [c, 0.0, 0.0, s], *(self._v + self._gust), 0.0, 0.0,
+            self._yaw_rate, pose, twist,
+            0, mavlink.MAV_ESTIMATOR_TYPE_AUTOPILOT, 100)
+
+    def _estimate(self) -> np.ndarray:
+        """The autopilot's position estimate, NED [m]: the truth and its drift."""
+        return self._p + self._drift
+
+    def _lat_lon_alt(self, ned: np.ndarray) -> tuple[float, float, float]:
+        """A local NED position [m] as latitude, longitude [deg] and altitude AMSL [m]."""
         lat, lon, alt = self.config.home
-        n, e, d = self._p
+        n, e, d = ned
         lat += math.degrees(n / EARTH_RADIUS)
         lon += math.degrees(e / (EARTH_RADIUS * math.cos(math.radians(lat))))
         return lat, lon, alt - d
 
     def _send_global_position(self, now: float) -> None:
-        lat, lon, alt = self._lat_lon_alt()
-        vn, ve, vd = (int(round(x * 100)) for x in self._v)
+        lat, lon, alt = self._lat_lon_alt(self._estimate())
+        vn, ve, vd = (int(round(x * 100)) for x in self._v + self._gust)
         self._conn.mav.global_position_int_send(
-            self._boot_ms(now), int(lat * 1e7), int(lon * 1e7), int(alt * 1e3), int(-self._p[2] * 1e3),
+            self._boot_ms(now), int(lat * 1e7), int(lon * 1e7), int(alt * 1e3),
+            int(-self._estimate()[2] * 1e3),
             vn, ve, vd, int(math.degrees(self._yaw) % 360 * 100))
 
 

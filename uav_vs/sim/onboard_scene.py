@@ -8,7 +8,8 @@ X = (u - u0) m, Y = -(v - v0) m (image up is north), with (u0, v0) the centre of
 A frame is rendered by exact projection: the plane-to-image homography of the true
 pose, K [r1 r2 t] (eq 27), composed with the texture-to-plane scale; lens distortion
 (plumb bob) by a remap through the camera's ideal rays. Then optional defocus blur and
-Gaussian sensor noise.
+Gaussian sensor noise
+(uav_vs.sim.camera_effects.GaussianNoise).
 
 The vehicle flies `Trajectory`: minimum-jerk segments between waypoints, yaw
 interpolated the same way, roll and pitch those of a multirotor whose thrust produces
@@ -21,6 +22,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 
+from uav_vs.sim.camera_effects import GaussianNoise
 from uav_vs.vision.camera import Camera
 from uav_vs.vision.plane_pose import camera_pose, plane_homography
 
@@ -47,8 +49,8 @@ class OnboardScene:
         u0, v0 = origin_px
         # Plane (X, Y, 1) -> texture (u, v, 1).
         self.plane_to_texture = np.array([[1 / self.mpp, 0, u0], [0, -1 / self.mpp, v0], [0, 0, 1]])
-        self.noise_sigma = noise_sigma
-        self._rng = np.random.default_rng(seed)
+        self.noise = GaussianNoise(noise_sigma, (camera.height, camera.width),
+                                   np.random.default_rng(seed))
         self._rays = None
         if np.any(camera.D):
             # Ideal normalised coordinates of every distorted pixel, for the remap.
@@ -79,10 +81,7 @@ class OnboardScene:
                             cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         if blur_sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
-        if self.noise_sigma > 0:
-            noise = self._rng.standard_normal(img.shape, np.float32) * self.noise_sigma
-            img = cv2.add(img, noise, dtype=cv2.CV_8U)
-        return img
+        return self.noise(img)
 
 
 @dataclass(frozen=True)

@@ -1,17 +1,19 @@
 """The closed-loop world (chapter section 5): what the cameras see of the simulated vehicle.
 
-The vehicle is the MAVLink simulator (uav_vs.sim.mavlink_vehicle), flying in its local
-NED frame with home on the ground at the origin. `world` (ENU, z up) has that same
-origin, so one point in space has one set of coordinates for the autopilot (NED), the
-ground cameras' calibration (eq 16) and the onboard camera's ground plane z = 0
-(section 4); the conversion is uav_vs.autopilot.frames. The simulated vehicle has no
-attitude dynamics: it stays level, and base_link's attitude is its heading alone.
+The vehicle is either the MAVLink simulator (uav_vs.sim.mavlink_vehicle, through
+SimulatedVehicle) or ArduPilot SITL (uav_vs.sim.sitl_truth), flying in a local NED frame
+with home on the ground at the origin. `world` (ENU, z up) has that same origin, so one
+point in space has one set of coordinates for the autopilot (NED), the ground cameras'
+calibration (eq 16) and the onboard camera's ground plane z = 0 (section 4); the
+conversion is uav_vs.autopilot.frames. The MAVLink simulator has no attitude dynamics:
+it stays level, and base_link's attitude is its heading alone; SITL's vehicle tilts.
 
 `SimWorld` samples the vehicle's true state and renders the ground trinocular cameras
 (uav_vs.sim.ground_scene, section 3) and the down-looking onboard camera
 (uav_vs.sim.onboard_scene, section 4) at that state.
 """
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -19,7 +21,10 @@ from uav_vs.autopilot.frames import ned_to_enu, yaw_ned_to_enu
 from uav_vs.sim.ground_scene import GroundScene, Pose, rot_z
 from uav_vs.sim.mavlink_vehicle import MavlinkVehicle, Truth
 from uav_vs.sim.onboard_scene import OnboardScene
+from uav_vs.vision.camera import Camera
 from uav_vs.vision.body_pose import quaternion_xyzw
+
+_VELOCITY_STEP = 1e-3        # s, finite difference of the image-plane velocities
 
 
 @dataclass(frozen=True)
@@ -48,25 +53,73 @@ def vehicle_state(truth: Truth) -> VehicleState:
                         rot_z(yaw), truth.armed, truth.mode, truth.flying)
 
 
+def point_image_velocity(camera: Camera, position: np.ndarray, velocity: np.ndarray
+                         ) -> np.ndarray:
+    """Image-plane velocity (px/s) of a world point moving at `velocity` (m/s) in a fixed
+    camera (eq 15-16): what blurs it during an exposure."""
+    h = _VELOCITY_STEP
+    return np.diff(camera.project(np.stack([position, position + h * velocity])), axis=0)[0] / h
+
+
+def ground_image_velocity(scene: OnboardScene, R_wb: np.ndarray, p_wb: np.ndarray,
+                          velocity: np.ndarray) -> np.ndarray:
+    """Image-plane velocity (px/s) of the ground point at the principal point of the onboard
+    camera, the body translating at `velocity` (m/s), through the plane homography (eq 27)."""
+    h, c = _VELOCITY_STEP, scene.camera.K[:2, 2]
+    ground = np.linalg.solve(scene.homography(R_wb, p_wb), [*c, 1.0])
+    moved = scene.homography(R_wb, p_wb + h * velocity) @ ground
+    return (moved[:2] / moved[2] - c) / h
+
+
+class Vehicle(Protocol):
+    """Where the world's vehicle truth comes from."""
+
+    def state(self) -> VehicleState: ...
+
+    def close(self) -> None: ...
+
+
+class SimulatedVehicle:
+    """The MAVLink vehicle simulator as the world's vehicle."""
+
+    def __init__(self, vehicle: MavlinkVehicle) -> None:
+        self.vehicle = vehicle
+
+    def state(self) -> VehicleState:
+        return vehicle_state(self.vehicle.truth())
+
+    def close(self) -> None:
+        self.vehicle.stop()
+
+
 class SimWorld:
     """The vehicle's true state and the ground and onboard cameras' views of it."""
 
-    def __init__(self, vehicle: MavlinkVehicle, ground: GroundScene, onboard: OnboardScene,
+    def __init__(self, vehicle: Vehicle, ground: GroundScene, onboard: OnboardScene,
                  onboard_min_height: float) -> None:
         self.vehicle = vehicle
         self.ground = ground
         self.onboard = onboard
         self.onboard_min_height = onboard_min_height
-        self._t0 = vehicle.truth().time
+        self._t0 = vehicle.state().time
 
     def state(self) -> VehicleState:
-        return vehicle_state(self.vehicle.truth())
+        return self.vehicle.state()
 
     def ground_images(self, state: VehicleState) -> list[np.ndarray]:
         """One BGR image per ground camera, in `cameras.names` order (section 3)."""
         images, _ = self.ground.render(Pose(state.time - self._t0, state.position, state.yaw,
                                             state.R))
         return images
+
+    def ground_image_velocities(self, state: VehicleState) -> list[np.ndarray]:
+        """Image-plane velocity (px/s) of the vehicle in each ground camera."""
+        return [point_image_velocity(cam, state.position, state.velocity)
+                for cam in self.ground.cameras]
+
+    def onboard_image_velocity(self, state: VehicleState) -> np.ndarray:
+        """Image-plane velocity (px/s) of the ground under the onboard camera."""
+        return ground_image_velocity(self.onboard, state.R, state.position, state.velocity)
 
     def onboard_height(self, state: VehicleState) -> float:
         """Height of the onboard camera's optical centre above the ground plane, m."""
@@ -80,4 +133,4 @@ class SimWorld:
         return self.onboard.render(state.R, state.position)
 
     def close(self) -> None:
-        self.vehicle.stop()
+        self.vehicle.close()

@@ -9,8 +9,9 @@ ValueError (tuning), one line naming the parameter.
 `homography.method` defaults to 'opencv_magsac': on the pose pipeline's own
 keyframe-to-frame tracks every estimator gives the same pose accuracy (0.13-0.17 % of
 the height, 0.06-0.08 deg, no frame lost, also with 20-40 % of the tracks made random)
-and MAGSAC is the fastest (0.7 ms a frame; cv2 RANSAC 0.7-1.3 ms, 'ransac' 2.4-3.2 ms),
-with a lower corner error than cv2 RANSAC on the Oxford pairs (homography.py).
+and MAGSAC is the fastest (0.7 ms a frame; cv2 RANSAC 0.7-1.3 ms, 'ransac' 2.4-3.2 ms).
+On the Oxford SIFT pairs its corner error is lower than cv2 RANSAC's on 3 of 8, higher
+on 3 (bench/onboard_homography.py).
 """
 from dataclasses import dataclass
 from typing import Mapping
@@ -23,6 +24,7 @@ from uav_vs.vision.camera import CalibrationError, Camera
 from uav_vs.vision.features import KINDS
 from uav_vs.vision.homography import METHODS
 from uav_vs.vision.klt import KltParams
+from uav_vs.vision.plane_geometry import REFINERS
 from uav_vs.vision.plane_pose import PlanePoseParams, camera_pose, plane_homography
 
 REQUIRED = None
@@ -35,7 +37,7 @@ class Setting:
     """One flat parameter: key, kind, default (REQUIRED if none), meaning, limits.
 
     kind is 'int', 'float', 'str' or 'floats' (a list of numbers of length `size`;
-    size 0 means x y pairs, at least four of them).
+    size 0 means x y pairs, at least four of them; None, any length).
     """
 
     key: str
@@ -53,7 +55,8 @@ SETTINGS = (
     Setting('camera.height', 'int', REQUIRED, 'image height, px', 1, 20000),
     Setting('camera.K', 'floats', REQUIRED, 'intrinsics K (eq 15), 9 numbers row-major, px',
             size=9),
-    Setting('camera.D', 'floats', REQUIRED, 'plumb-bob distortion k1 k2 p1 p2 k3', size=5),
+    Setting('camera.D', 'floats', REQUIRED, 'distortion, OpenCV order k1 k2 p1 p2 [k3 [k4 k5 k6 '
+            '[s1 s2 s3 s4 [tx ty]]]]: 0, 4, 5, 8, 12 or 14 numbers'),
     Setting('camera.frame_id', 'str', 'onboard_camera_optical', 'optical frame of the images'),
     Setting('camera_to_base_link.xyz', 'floats', [0.0, 0.0, 0.0],
             'optical frame origin in base_link (FLU), m', size=3),
@@ -103,6 +106,9 @@ SETTINGS = (
             4, 5000),
     Setting('pose.max_rms_px', 'float', _P.max_rms_px,
             'refined pose reprojection RMS above this is a loss, px', 0.01, 100.0),
+    Setting('pose.refine', 'str', _P.refine,
+            "pose refinement on the inliers: opencv (cv2.solvePnPRefineLM) or lm (eq 27 by "
+            "this package's Levenberg-Marquardt)", choices=REFINERS),
     Setting('keyframe.reanchor_inliers', 'int', _P.reanchor_inliers,
             're-anchor when inliers drop below this', 4, 5000),
     Setting('keyframe.reanchor_coverage', 'float', _P.reanchor_coverage,
@@ -144,9 +150,10 @@ def load_onboard_config(params: Mapping[str, object]) -> OnboardConfig:
     sub = {k.removeprefix('camera.'): x for k, x in v.items() if k.startswith('camera.')}
     camera = Camera.from_params('onboard_camera', {**sub, 'R': np.eye(3).ravel(),
                                                    't': np.zeros(3)}, 'camera.')
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler('xyz', v['camera_to_base_link.rpy']).as_matrix()
-    T[:3, 3] = v['camera_to_base_link.xyz']
+    if v['pose.refine'] == 'opencv' and camera.K[0, 1] != 0.0:
+        raise ValueError(f"pose.refine: opencv ignores the skew of camera.K "
+                         f"({camera.K[0, 1]:g}); use lm")
+    T = camera_to_body(v['camera_to_base_link.xyz'], v['camera_to_base_link.rpy'])
     if v['init.mode'] == 'pose':
         R_wb = Rotation.from_euler('xyz', v['init.rpy']).as_matrix()
         R, t = camera_pose(R_wb, np.array(v['init.position']), T)
@@ -178,8 +185,17 @@ def load_onboard_config(params: Mapping[str, object]) -> OnboardConfig:
         v['homography.max_trials'], v['pose.max_rms_px'], v['image_quality.blur_level'],
         v['image_quality.min_sharpness'], v['relocalise.after_frames'],
         v['relocalise.features'], v['relocalise.max_features'], v['relocalise.ratio'],
-        v['relocalise.max_shift'])
+        v['relocalise.max_shift'], v['pose.refine'])
     return OnboardConfig(camera, T, H0, pose, v['init.mode'])
+
+
+def camera_to_body(xyz: list[float], rpy: list[float]) -> np.ndarray:
+    """4x4 pose of the optical frame in base_link (x_b = T x_c) from `camera_to_base_link.*`:
+    origin xyz, m, and fixed-axis roll, pitch, yaw, rad (URDF)."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler('xyz', rpy).as_matrix()
+    T[:3, 3] = xyz
+    return T
 
 
 def _value(params: Mapping[str, object], s: Setting) -> object:
@@ -213,6 +229,8 @@ def _expected(s: Setting) -> str:
     if s.kind == 'str':
         return 'one of ' + ', '.join(s.choices) if s.choices else 'a string'
     if s.kind == 'floats':
+        if s.size is None:
+            return 'a list of numbers'
         return f'{s.size} numbers' if s.size else 'x y pairs of numbers, at least 4 pairs'
     return f"{'an integer' if s.kind == 'int' else 'a number'} in [{s.low:g}, {s.high:g}]"
 

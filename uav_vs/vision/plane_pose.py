@@ -3,7 +3,9 @@
 Following Simon et al. (2000): the ground is the plane z = 0 of the `world` frame
 (ENU, the vehicle above it at z > 0). A plane point (X, Y, 0) projects by eq 27 as
 s x = K [r1 r2 r3 t] (X, Y, 0, 1)^T = K [r1 r2 t] (X, Y, 1)^T, so the plane-to-image
-homography is H = K [r1 r2 t] and the pose comes back from K^-1 H (section 4.1).
+homography is H = K [r1 r2 t] and the pose comes back from K^-1 H (section 4.1); the
+eq 27 geometry itself (H from a pose, the pose from H, its refinement) is in
+plane_geometry.py.
 
 Conventions:
 - R, t are world-to-camera (x_c = R x_w + t, as `Camera`); the optical frame is
@@ -43,8 +45,8 @@ from uav_vs.vision.camera import Camera
 from uav_vs.vision.features import DescribedImage
 from uav_vs.vision.homography import estimate_homography
 from uav_vs.vision.klt import KltParams, KltTracker
-
-_LM_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10)
+from uav_vs.vision.plane_geometry import (DEFAULT_REFINER, plane_homography,
+                                          pose_from_plane_homography, refine_plane_pose)
 
 
 @dataclass(frozen=True)
@@ -69,6 +71,7 @@ class PlanePoseParams:
     relocalise_max_features: int = 1000  # keypoints per image for relocalisation
     relocalise_ratio: float = 0.8    # Lowe's ratio test for relocalisation matches
     relocalise_max_shift: float = 1.0  # camera moved farther than this x its height: refused
+    refine: str = DEFAULT_REFINER    # pose refinement on the inliers (plane_geometry.REFINERS)
 
 
 @dataclass
@@ -90,30 +93,6 @@ class PlanePose:
     H: np.ndarray | None = None
     reason: str = ''
     stats: dict = field(default_factory=dict)
-
-
-def plane_homography(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """H = K [r1 r2 t] (eq 27 with Z = 0), normalised so H[2,2] = 1 when possible."""
-    H = K @ np.column_stack([R[:, 0], R[:, 1], t])
-    return H / H[2, 2] if abs(H[2, 2]) > 1e-12 else H
-
-
-def pose_from_plane_homography(K: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World-to-camera R, t from a plane-to-image homography (section 4.1, eq 27).
-
-    K^-1 H = lambda [r1 r2 t]: lambda from the mean norm of the first two columns, its
-    sign so that the plane point seen at the principal point lies in front of the
-    camera (positive depth), r3 = r1 x r2, and [r1 r2 r3] projected onto the nearest
-    rotation by SVD.
-    """
-    G = np.linalg.solve(K, H)
-    lam = 2.0 / (np.linalg.norm(G[:, 0]) + np.linalg.norm(G[:, 1]))
-    centre = np.linalg.solve(H, np.array([K[0, 2], K[1, 2], 1.0]))
-    lam *= np.sign(centre[2]) or 1.0   # depth of that point is lam / centre[2]
-    r1, r2, t = lam * G[:, 0], lam * G[:, 1], lam * G[:, 2]
-    U, _, Vt = np.linalg.svd(np.column_stack([r1, r2, np.cross(r1, r2)]))
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return R, t
 
 
 def body_pose(R_cw: np.ndarray, t: np.ndarray, camera_to_body: np.ndarray | None
@@ -152,6 +131,8 @@ class PlanePoseEstimator:
 
     def __init__(self, camera: Camera, params: PlanePoseParams = PlanePoseParams(),
                  camera_to_body: np.ndarray | None = None, seed: int = 0) -> None:
+        if not (camera.width and camera.height):
+            raise ValueError('camera: the image size (width, height) is needed to track features')
         self.camera = camera
         self.params = params
         self.camera_to_body = None if camera_to_body is None else np.asarray(camera_to_body, float)
@@ -262,11 +243,9 @@ class PlanePoseEstimator:
         # Chain the keyframe-to-frame homography onto the keyframe's plane homography
         # (eq 27), decompose, then refine the pose on the inliers' plane points.
         R, t = pose_from_plane_homography(self.camera.K, est.H @ self._H_k)
-        rvec, tvec = cv2.solvePnPRefineLM(xyz, pts, self.camera.K, None, cv2.Rodrigues(R)[0],
-                                          t.reshape(3, 1), criteria=_LM_CRITERIA)
-        R, t = cv2.Rodrigues(rvec)[0], tvec.ravel()
+        fit = refine_plane_pose(self.camera.K, xyz, pts, R, t, method=p.refine)
+        R, t, rms = fit.R, fit.t, fit.rms_px
         proj = xyz @ (self.camera.K @ R).T + self.camera.K @ t
-        rms = float(np.sqrt(np.mean(np.sum((proj[:, :2] / proj[:, 2:] - pts) ** 2, axis=1))))
         stats['rms_px'] = round(rms, 3)
         if not rms <= p.max_rms_px:
             return f'reprojection RMS {rms:.2f} px > {p.max_rms_px:g}'

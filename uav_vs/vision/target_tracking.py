@@ -4,16 +4,16 @@ The template (e.g. a car seen from above, a helipad) is described once; each fra
 described, matched against it with the ratio test (section 2.2) and the template-to-
 frame homography is estimated robustly (section 2.3, Algorithm 1). The target's
 corners and centre are the template's corners and centre mapped by that homography.
-The estimator defaults to 'ransac' (Algorithm 1), the most accurate on the Oxford
-wide-baseline SIFT matches, the kind this tracker makes (homography.py); its ~8 ms a
-call is small beside the ~200 ms SIFT takes on a 640x480 frame.
+The estimator defaults to the project's (homography.DEFAULT_METHOD, cv2 RANSAC);
+'ransac' (Algorithm 1) is more accurate on the Oxford wide-baseline SIFT matches, the
+kind this tracker makes, at a few ms a call more (homography.py).
 """
 from dataclasses import dataclass
 
 import numpy as np
 
 from uav_vs.vision.features import DescribedImage, as_gray
-from uav_vs.vision.homography import estimate_homography
+from uav_vs.vision.homography import DEFAULT_METHOD, estimate_homography
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,7 @@ class PlanarTargetTracker:
     """Find one planar template in frames (Fig. 2)."""
 
     def __init__(self, template_gray: np.ndarray, kind: str = 'sift', ratio: float = 0.75,
-                 method: str = 'ransac', threshold_px: float = 3.0, min_inliers: int = 12,
+                 method: str = DEFAULT_METHOD, threshold_px: float = 3.0, min_inliers: int = 12,
                  max_features: int = 0, rng: np.random.Generator | int | None = 0):
         template = as_gray(template_gray)
         self.ratio, self.method = ratio, method

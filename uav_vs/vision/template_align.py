@@ -221,13 +221,49 @@ class _Level:
                 return None, None
         M1 = M @ [[1, 0, 1], [0, 1, 1], [0, 0, 1]]
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        if M1[2, 0] == 0 and M1[2, 1] == 0:
+        if not _OPENCV_WARPS_EXACTLY:
+            out = bilinear_warp(img, M1, self.size)
+        elif M1[2, 0] == 0 and M1[2, 1] == 0:
             out = cv2.warpAffine(img, M1[:2], self.size, flags=flags,
                                  borderMode=cv2.BORDER_REPLICATE)
         else:
             out = cv2.warpPerspective(img, M1, self.size, flags=flags,
                                       borderMode=cv2.BORDER_REPLICATE)
         return out.reshape(len(self.t), -1), inside
+
+
+def bilinear_warp(img: np.ndarray, M: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """img at M (x, y, 1) for every pixel of a size = (w, h) output, bilinear in exact
+    coordinates, border replicated: cv2.warpPerspective with WARP_INVERSE_MAP as OpenCV 5
+    computes it, where OpenCV 4 rounds the coordinates to 1/32 px."""
+    w, h = size
+    ys, xs = np.mgrid[0:h, 0:w]
+    p = M @ np.stack([xs.ravel(), ys.ravel(), np.ones(w * h)])
+    rows, cols = img.shape[:2]
+    u = np.clip(p[0] / p[2], 0, cols - 1)
+    v = np.clip(p[1] / p[2], 0, rows - 1)
+    x0 = np.minimum(u.astype(int), max(cols - 2, 0))
+    y0 = np.minimum(v.astype(int), max(rows - 2, 0))
+    fx, fy = u - x0, v - y0
+    x1, y1 = np.minimum(x0 + 1, cols - 1), np.minimum(y0 + 1, rows - 1)
+    if img.ndim == 3:
+        fx, fy = fx[:, None], fy[:, None]
+    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
+    bottom = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
+    out = top * (1 - fy) + bottom * fy
+    return out.astype(img.dtype).reshape(h, w, *img.shape[2:])
+
+
+def _warps_exactly() -> bool:
+    """Whether cv2.warpAffine interpolates at the exact coordinate: a ramp shifted by
+    1/64 px reads 1/64 more (OpenCV 5; OpenCV 4 rounds the shift to 0 or 1/32)."""
+    ramp = np.tile(np.arange(8, dtype=np.float32), (8, 1))
+    out = cv2.warpAffine(ramp, np.array([[1, 0, 2 + 1 / 64], [0, 1, 2]]), (2, 2),
+                         flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    return abs(float(out[0, 0]) - (2 + 1 / 64)) < 1e-4
+
+
+_OPENCV_WARPS_EXACTLY = _warps_exactly()
 
 
 def _inside(p: np.ndarray, w: int, h: int) -> np.ndarray:

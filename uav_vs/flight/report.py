@@ -14,7 +14,7 @@ events; `FlightReport.from_log` scores it:
 - latencies: a vision pose's arrival at the recorder minus its image's stamp, and a
   command's (cmd_vel computed from a vision pose carries its image's stamp) the same.
 
-No ROS here: the runner (uav_vs.scenario) fills the log, `save` / `load` keep it as .npz.
+No ROS here: the runner (uav_vs.flight.scenario) fills the log, `save` / `load` keep it as .npz.
 """
 import json
 import math
@@ -105,6 +105,7 @@ class FlightLog:
     landed_ns: int | None = None     # the autopilot reported disarmed after landing
     failure: str = ''                # why the mission stopped early; '' if it completed
     exit_codes: dict[str, int] = field(default_factory=dict)  # of every process, at the end
+    failed_logs: dict[str, str] = field(default_factory=dict)  # log ends of those not 0
 
     def save(self, path: Path) -> None:
         arrays = {f'{name}.{key}': value for name in ('truth', *SOURCES)
@@ -190,6 +191,7 @@ class FlightReport:
     window: str                      # what the sources were scored over
     failure: str
     exit_codes: dict[str, int]       # of every process of the graph
+    failed_logs: dict[str, str]      # the end of the log of each whose status was not 0
 
     @classmethod
     def from_log(cls, log: FlightLog) -> 'FlightReport':
@@ -211,7 +213,7 @@ class FlightReport:
         window = 'takeoff to LAND' if log.takeoff_ns is not None else 'the whole log'
         return cls(log.scenario, sources, score_commands(log), setpoints, landing,
                    frames['ground'], frames['onboard'], (end - start) * 1e-9, window,
-                   log.failure, log.exit_codes)
+                   log.failure, log.exit_codes, log.failed_logs)
 
     def summary(self) -> str:
         lines = [f'scenario {self.scenario}: ' + (f'FAILED: {self.failure}' if self.failure
@@ -252,7 +254,9 @@ class FlightReport:
                          f'({self.landing.pad[0]:+.2f}, {self.landing.pad[1]:+.2f}) m')
         bad = {label: code for label, code in self.exit_codes.items() if code != 0}
         if bad:
-            lines.append(f'exit status other than 0 when stopped: {bad} (see the logs)')
+            lines.append(f'exit status other than 0 when stopped: {bad}')
+            lines.extend('  ' + line for tail in self.failed_logs.values()
+                         for line in tail.splitlines())
         return '\n'.join(lines)
 
 

@@ -1,4 +1,4 @@
-"""PNG plots of a closed-loop flight (uav_vs.flight_report.FlightLog), Agg backend.
+"""PNG plots of a closed-loop flight (uav_vs.flight.report.FlightLog), Agg backend.
 
 - `poses.png`: x, y, z and yaw over time of each vision pose, the autopilot's own
   estimate and the truth, as the chapter's Fig. 6 compares them;
@@ -13,7 +13,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from uav_vs.autopilot.frames import wrap_angle
-from uav_vs.flight_report import LABELS, SOURCES, FlightLog, interpolate, within
+from uav_vs.flight.report import LABELS, SOURCES, FlightLog, interpolate, within
 
 STYLE = {'truth': dict(color='k', lw=1.2, ls='--'), 'ground': dict(color='tab:red', lw=1.0),
          'onboard': dict(color='tab:blue', lw=1.0), 'odom': dict(color='tab:green', lw=1.0)}

@@ -14,11 +14,11 @@
 
 and flies the mission: the relay's `set_guided`, `arm`, `takeoff`, `set_guided` again
 (PX4 holds in AUTO.LOITER after its takeoff); the controller's
-`/fuzzy_controller_node/enable`; one `setpoint` after another, each accepted once the
+`controller/enable`; one `setpoint` after another, each accepted once the
 vision pose the controller flies on has stayed within the tolerance for the hold; over
 the pad, the relay's `land`. The mission never looks at the truth or at the autopilot's
 estimate; it records them, with both vision poses and the commands, into a
-`FlightLog` that uav_vs.flight_report scores.
+`FlightLog` that uav_vs.flight.report scores.
 """
 import math
 import shutil
@@ -32,9 +32,9 @@ import numpy as np
 from std_srvs.srv import SetBool, Trigger
 
 from uav_vs import graph
-from uav_vs.flight_recorder import FlightRecorder, MissionError
-from uav_vs.flight_report import FlightLog, SetpointEvent
-from uav_vs.ground_replay import ground_graph
+from uav_vs.flight.ground_replay import DEFAULT_LAYOUT, ground_graph
+from uav_vs.flight.recorder import FlightRecorder, MissionError
+from uav_vs.flight.report import FlightLog, SetpointEvent
 from uav_vs.vision.ground_config import default_config_path, read_params_file
 
 NORTH = math.pi / 2          # ENU heading of the vehicle at boot (MAVLink yaw 0 = north)
@@ -91,21 +91,34 @@ SCENARIOS = {s.name: s for s in (HOLD, SETPOINTS, LAND_ON_PAD, DEMO)}
 
 @dataclass(frozen=True)
 class Configs:
-    """The params files the graph is started with."""
+    """The params files the graph is started with, and the ground station's layout
+    (uav_vs.flight.ground_replay.LAYOUTS)."""
 
     ground: Path = default_config_path('ground_trinocular.yaml')
     onboard: Path = default_config_path('onboard.yaml')
     world: Path = default_config_path('sim_world.yaml')
+    sensors: Path | None = None      # a sensor profile given after `world`, e.g. SENSORS
     controller: Path = default_config_path('fuzzy_controller.yaml')
     relay: Path = default_config_path('mavlink_relay.yaml')
+    ground_layout: str = DEFAULT_LAYOUT
+
+
+@dataclass(frozen=True)
+class SitlLink:
+    """An ArduPilot SITL flying the vehicle: the relay's MAVLink port, and another one
+    where sim_world reads the SIM_STATE truth (uav_vs.sim.sitl_truth)."""
+
+    relay: str = 'tcp:127.0.0.1:5760'
+    truth: str = 'tcp:127.0.0.1:5762'
 
 
 def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
         startup_timeout: float = 90.0, record: bool = True,
-        autopilot: str = 'ardupilot') -> FlightLog:
+        autopilot: str = 'ardupilot', sitl: SitlLink | None = None) -> FlightLog:
     """Start the graph, fly `scenario`, stop the graph; node logs go to out_dir/logs and,
     with `record`, the flight's topics (recorded_topics) to the bag out_dir/bag. The
-    simulated vehicle behaves as `autopilot` ('ardupilot' or 'px4') does.
+    vehicle is the simulated one, behaving as `autopilot` ('ardupilot' or 'px4') does,
+    or with `sitl` that ArduPilot SITL (started, ready within `startup_timeout`).
 
     A step that fails ends the mission (the vehicle is told to land where it is) and
     is named in the log's `failure`.
@@ -113,7 +126,8 @@ def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
     bag = out_dir / 'bag' if record else None
     if bag is not None and bag.exists():
         shutil.rmtree(bag)
-    return _Mission(scenario, out_dir / 'logs', configs, bag, autopilot).run(startup_timeout)
+    return _Mission(scenario, out_dir / 'logs', configs, bag, autopilot, sitl).run(
+        startup_timeout)
 
 
 def recorded_topics(cameras: list[str]) -> list[str]:
@@ -138,9 +152,9 @@ class _Mission:
     """One flight of a scenario: processes, mission steps, events."""
 
     def __init__(self, scenario: Scenario, log_dir: Path, configs: Configs,
-                 bag: Path | None, autopilot: str) -> None:
+                 bag: Path | None, autopilot: str, sitl: SitlLink | None) -> None:
         self.scenario, self.log_dir, self.configs, self.bag = scenario, log_dir, configs, bag
-        self.autopilot = autopilot
+        self.autopilot, self.sitl = autopilot, sitl
         self.procs: dict[str, subprocess.Popen] = {}      # running
         self.retired: list[tuple[str, subprocess.Popen]] = []   # stopped on purpose
         self.controller_source = ''
@@ -160,33 +174,42 @@ class _Mission:
             graph.stop(list(self.procs.values()))
             log = self.rec.log(self.scenario.name, **self.events)
             self.rec.close()
-        log.exit_codes = {label: proc.returncode
-                          for label, proc in [*self.retired, *self.procs.items()]}
+        procs = dict([*self.retired, *self.procs.items()])
+        log.exit_codes = {label: proc.returncode for label, proc in procs.items()}
+        log.failed_logs = graph.failed_logs(procs)
         return log
 
     # ---------------------------------------------------------------- graph
-    def _start(self, label: str, name: str, ros_args: list[str], args: list[str] = ()) -> None:
-        self.procs[label] = graph.start(name, ros_args, self.log_dir, label, args=args)
+    def _start(self, label: str, name: str, ros_args: list[str], args: list[str] = (),
+               log_name: str | None = None) -> None:
+        self.procs[label] = graph.start(name, ros_args, self.log_dir, log_name or label,
+                                        args=args)
 
     def _start_graph(self, cameras: list[str], timeout: float) -> None:
         """The recorder, then everything but the onboard pose node; the relay once the
         vehicle serves."""
         c = self.configs
-        port = free_port()
+        if self.sitl is None:
+            port = free_port()
+            vehicle = ['-p', f'vehicle.connection:=tcpin:127.0.0.1:{port}',
+                       '-p', f'vehicle.autopilot:={self.autopilot}']
+            relay = f'tcp:127.0.0.1:{port}'
+        else:
+            vehicle = ['-p', 'vehicle.model:=sitl',
+                       '-p', f'vehicle.sitl_connection:={self.sitl.truth}']
+            relay = self.sitl.relay
         if self.bag is not None:
             self._start('bag_record', 'bag_record', [], args=['-o', str(self.bag),
                                                                *recorded_topics(cameras)])
         self._start('sim_world', 'sim_world', [
             '--params-file', str(c.ground), '--params-file', str(c.onboard),
-            '--params-file', str(c.world), '-p', f'vehicle.connection:=tcpin:127.0.0.1:{port}',
-            '-p', f'vehicle.autopilot:={self.autopilot}'])
-        for label, proc in zip([*cameras, 'trinocular_pose_node'],
-                               ground_graph(c.ground, cameras, self.log_dir)):
-            self.procs[label] = proc
+            '--params-file', str(c.world),
+            *(['--params-file', str(c.sensors)] if c.sensors else []), *vehicle])
+        self.procs.update(ground_graph(c.ground, cameras, self.log_dir, layout=c.ground_layout))
         self._start_controller('ground')
         self._wait('sim_world', lambda: '/sim_world' in self.rec.reporting, timeout)
         self._start('mavlink_relay_node', 'mavlink_relay_node', [
-            '--params-file', str(c.relay), '-p', f'connection:=tcp:127.0.0.1:{port}',
+            '--params-file', str(c.relay), '-p', f'connection:={relay}',
             '-p', 'allow_arming:=true',
             '-p', f'takeoff_height:={self.scenario.takeoff_height:.3f}'])
 
@@ -199,13 +222,14 @@ class _Mission:
         self.controller_source = source
         self._start('fuzzy_controller_node', 'fuzzy_controller_node', [
             '--params-file', str(self.configs.controller),
-            '-p', f'controller.pose_topic:={source}/pose', '-p', 'controller.command_frame:=world'])
+            '-p', f'controller.pose_topic:={source}/pose', '-p', 'controller.command_frame:=world'],
+            log_name=f'fuzzy_controller_node_{source}')
 
     def _check_alive(self) -> None:
         for label, proc in self.procs.items():
             if proc.poll() is not None:
                 raise MissionError(f'{label} exited with status {proc.returncode} '
-                                   f'(log: {self.log_dir / label}.log)')
+                                   f'(log: {proc.log_path})')
 
     def _wait(self, what: str, predicate, timeout: float) -> None:
         deadline = time.monotonic() + timeout
@@ -244,7 +268,7 @@ class _Mission:
         topic = f'/{self.controller_source}/pose'
         self._wait(f'fuzzy_controller_node on {topic}',
                    lambda: topic in self.rec.subscriptions('fuzzy_controller_node'), 30.0)
-        self.rec.call(SetBool, '/fuzzy_controller_node/enable', SetBool.Request(data=on), 5.0,
+        self.rec.call(SetBool, 'controller/enable', SetBool.Request(data=on), 5.0,
                       attempts=6)
 
     def _fresh(self, source: str, max_age: float = 0.5) -> bool:

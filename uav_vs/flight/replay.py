@@ -1,5 +1,5 @@
 """`make demo BAG=<bag>`: a recorded flight through the open-loop part of the graph, scored
-as a closed-loop flight is (uav_vs.flight_report).
+as a closed-loop flight is (uav_vs.flight.report).
 
 What runs depends on what the bag holds, each node a process started from its console
 script with its params file, as `ros2 run` would:
@@ -12,7 +12,7 @@ script with its params file, as `ros2 run` would:
 The bag's inputs (images, camera_info, truth/pose, setpoint, autopilot/odom) are published
 raw at their recorded times; what the graph computes (OUTPUTS) is not replayed but made
 anew and recorded by a FlightRecorder, as in flight. When the bag holds the flight's own
-`onboard/pose` (a bag that uav_vs.scenario recorded), homography_pose_node is initialised
+`onboard/pose` (a bag that uav_vs.flight.scenario recorded), homography_pose_node is initialised
 at its first pose and fed from that frame on, as it was in flight; otherwise its params
 file's `init.*` apply. Arrival times are mapped to the bag's clock, so the latencies are
 those of the replayed graph (meaningful at rate 1).
@@ -28,13 +28,13 @@ from scipy.spatial.transform import Rotation
 
 from uav_vs import graph
 from uav_vs.bag.reader import BagMessage, read_messages
-from uav_vs.flight_recorder import FlightRecorder, MissionError
-from uav_vs.flight_report import FlightLog
-from uav_vs.ground_replay import ground_graph
-from uav_vs.onboard_replay import onboard_graph
+from uav_vs.flight.ground_replay import ground_graph
+from uav_vs.flight.onboard_replay import onboard_graph
+from uav_vs.flight.recorder import FlightRecorder, MissionError
+from uav_vs.flight.report import FlightLog
+from uav_vs.flight.scenario import Configs
 from uav_vs.ros.convert import msg_to_pose, stamp_to_ns
 from uav_vs.ros.replay import RawPublishers, message_class
-from uav_vs.scenario import Configs
 from uav_vs.vision.ground_config import read_params_file
 
 OUTPUTS = ('ground/pose', 'ground/landmarks', 'onboard/pose', 'onboard/target', 'cmd_vel',
@@ -60,24 +60,26 @@ def replay_flight(bag: Path, log_dir: Path, configs: Configs = Configs(), rate: 
     rec = FlightRecorder(cameras[0])
     procs: dict[str, object] = {}
     try:
-        if any(has[cam] for cam in cameras):
-            procs.update(zip([*cameras, 'trinocular_pose_node'],
-                             ground_graph(configs.ground, cameras, log_dir)))
+        ground = any(has[cam] for cam in cameras)
+        if ground:
+            # A replay must lose no frame: the bag's images go reliably, as in any bag replay.
+            procs.update(ground_graph(configs.ground, cameras, log_dir,
+                                      ['-p', 'camshift.image_qos:=reliable']))
         if has['onboard']:
             [procs['homography_pose_node']] = onboard_graph(configs.onboard, log_dir,
                                                             _init_args(onboard_init))
         if 'setpoint' in topics:
-            source = 'ground' if 'trinocular_pose_node' in procs else 'onboard'
+            source = 'ground' if ground else 'onboard'
             procs['fuzzy_controller_node'] = graph.start('fuzzy_controller_node', [
                 '--params-file', str(configs.controller),
                 '-p', f'controller.pose_topic:={source}/pose', '-p', 'controller.enabled:=true',
-                '-p', 'controller.command_frame:=world'], log_dir)
+                '-p', 'controller.command_frame:=world',
+                '-p', 'controller.max_stamp_age:=0.0'], log_dir)   # the flight's stamps, not now
         pubs = RawPublishers(rec.node)
         images = [pubs.publisher(t, m.msgtype) for t, m in
                   {m.topic: m for m in inputs if '/image_raw' in m.topic}.items()]
-        made = [f'/{name}/pose' for name, proc in (('ground', 'trinocular_pose_node'),
-                                                   ('onboard', 'homography_pose_node'))
-                if proc in procs]
+        made = [f'/{name}/pose' for name, running in (('ground', ground),
+                                                      ('onboard', has['onboard'])) if running]
         _wait(procs, lambda: all(p.get_subscription_count() for p in images)
               and all(rec.node.count_publishers(t) for t in made), startup_timeout)
         if 'fuzzy_controller_node' in procs:
@@ -90,6 +92,7 @@ def replay_flight(bag: Path, log_dir: Path, configs: Configs = Configs(), rate: 
         log = rec.log(f'replay of {bag}', setpoints=[], pad=None)
         rec.close()
     log.exit_codes = codes
+    log.failed_logs = graph.failed_logs(procs)
     log.onboard_start_ns = onboard_init[0] if onboard_init else None
     scale, t0_bag = (rate if rate > 0 else 1.0), inputs[0].t_ns
     for track in (log.truth, log.ground, log.onboard, log.odom, log.commands):   # to bag time

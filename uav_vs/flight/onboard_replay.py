@@ -3,7 +3,7 @@
 The node is started as a separate process from its console script with the params
 file, as `ros2 run` would; the bag's images are published with their recorded stamps
 and every `onboard/pose` is matched by stamp to the bag's `truth/pose`
-(uav_vs.pose_replay). Position errors are also given relative to the camera's height
+(uav_vs.flight.pose_replay). Position errors are also given relative to the camera's height
 above the ground plane, the natural scale of a plane-homography pose (section 4).
 """
 from dataclasses import dataclass, field
@@ -13,8 +13,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from uav_vs import graph
-from uav_vs.flight_report import rms
-from uav_vs.pose_replay import PoseErrors, pose_errors, replay_bag
+from uav_vs.flight.pose_replay import PoseErrors, pose_errors, replay_bag
+from uav_vs.flight.report import rms
 from uav_vs.vision.ground_config import read_params_file
 from uav_vs.vision.onboard_config import load_onboard_config
 

@@ -2,7 +2,7 @@
 the frame stamps and the relay's status recorded into a FlightLog, the setpoint published,
 services called.
 
-Used by uav_vs.scenario (missions in closed loop) and uav_vs.flight_replay (a recorded
+Used by uav_vs.flight.scenario (missions in closed loop) and uav_vs.flight.replay (a recorded
 flight through the open-loop graph).
 """
 import math
@@ -19,8 +19,9 @@ from rclpy.node import NodeNameNonExistentError
 from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import Header
 
-from uav_vs.flight_report import CommandTrack, FlightLog, PoseTrack
-from uav_vs.ros.convert import msg_to_odometry, msg_to_pose, msg_to_twist, stamp_to_ns, yaw_of
+from uav_vs.flight.report import CommandTrack, FlightLog, PoseTrack
+from uav_vs.ros.convert import (MessageError, msg_to_odometry, msg_to_pose, msg_to_twist,
+                                stamp_to_ns, yaw_of)
 
 RELAY = '/mavlink_relay_node'
 
@@ -69,13 +70,19 @@ class FlightRecorder:
         self.thread.join(timeout=5.0)
 
     def _on_pose(self, name: str, msg: PoseStamped) -> None:
-        position, q = msg_to_pose(msg)
+        try:
+            position, q = msg_to_pose(msg)
+        except MessageError:            # an orientation that is no rotation: not a pose
+            return
         stamp, yaw = stamp_to_ns(msg.header.stamp), yaw_of(q)
         self.rows[name].append((stamp, time.time_ns(), *position, yaw))
         self.latest[name] = (stamp, position, yaw)
 
     def _on_odom(self, msg: Odometry) -> None:
-        position, q, _, _ = msg_to_odometry(msg)
+        try:
+            position, q, _, _ = msg_to_odometry(msg)
+        except MessageError:
+            return
         self.rows['odom'].append((stamp_to_ns(msg.header.stamp), time.time_ns(), *position,
                                   yaw_of(q)))
 

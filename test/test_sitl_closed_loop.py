@@ -1,0 +1,61 @@
+"""Closed loop by vision on ArduCopter SITL (chapter section 5 with the real autopilot).
+
+`python -m uav_vs.demo --autopilot ardupilot-sitl` starts the SITL binary of ../shared/sitl
+in a loopback-only network namespace, the whole graph joins it, and the mission flies
+with ArduPilot's physics, EKF3 and GUIDED controller: take off, hold on the ground
+station's pose, land on the pad on the onboard pose. Truth is SITL's own physics state
+(SIM_STATE), which no node of the loop reads.
+"""
+import os
+import subprocess
+import sys
+
+import pytest
+
+from sitl import REPO, sitl_dir
+from uav_vs.flight.report import FlightLog, FlightReport
+
+SCENARIO = 'land_on_pad'     # hold at (0, 0, 1.5) m, land on the pad at (0.8, -0.5) m
+
+
+@pytest.fixture(scope='module')
+def flight(tmp_path_factory) -> tuple[FlightLog, str]:
+    binary = sitl_dir() / 'ardupilot' / 'arducopter'
+    if os.geteuid() != 0:
+        pytest.skip('SITL runs in a network namespace of its own, which needs root')
+    out = tmp_path_factory.mktemp('sitl_flight')
+    run = subprocess.run([sys.executable, '-m', 'uav_vs.demo', '--autopilot', 'ardupilot-sitl',
+                          '--scenario', SCENARIO, '--out', str(out)],
+                         env={**os.environ, 'UAV_VS_ARDUPILOT_SITL': str(binary)},
+                         capture_output=True, text=True, timeout=300, cwd=REPO)
+    print(run.stdout)
+    assert (out / 'flight.npz').exists(), f'{run.stdout[-3000:]}\n{run.stderr[-3000:]}'
+    return FlightLog.load(out / 'flight.npz'), run.stdout
+
+
+def test_the_mission_flies_arducopter_sitl_by_vision(flight):
+    log, stdout = flight
+    report = FlightReport.from_log(log)
+    assert log.failure == '', log.failure
+    assert 'ArduCopter SITL' in stdout and 'started in network namespace' in stdout
+    assert [e.source for e in log.setpoints] == ['ground', 'onboard', 'onboard']
+    for event in log.setpoints:      # the controller flew on a vision pose, nothing else
+        assert event.controller_inputs == tuple(sorted((f'/{event.source}/pose', '/setpoint')))
+    hold = report.setpoints[0]
+    assert hold.reached and hold.error_rms_m <= 0.10, hold
+    assert all(s.reached for s in report.setpoints)
+    assert report.landing is not None and report.landing.touchdown[2] < 0.05
+    assert report.landing.error_m <= 0.20, report.landing
+    assert not any(log.exit_codes.values()), (log.exit_codes, log.failed_logs)
+
+
+def test_vision_poses_match_the_sitl_physics(flight):
+    """Both vision poses against SIM_STATE, the truth of the SITL physics."""
+    report = FlightReport.from_log(flight[0])
+    for name in ('ground', 'onboard'):
+        score = report.sources[name]
+        assert score.samples > 50, (name, score)
+        assert score.position_rmse_m <= 0.05 and score.yaw_rmse_deg <= 2.0, (name, score)
+    # The autopilot's own estimate (EKF3 on its GPS and IMU) is the third opinion.
+    odom = report.sources['odom']
+    assert odom.samples > 50 and odom.position_rmse_m <= 0.5, odom

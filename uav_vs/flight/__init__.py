@@ -1,0 +1,1 @@
+"""uav_vs.flight: missions (chapter section 5 tasks), flight recording, replay, report, plots."""
