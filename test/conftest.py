@@ -77,7 +77,7 @@ def ros2_cli(ros2_env):
     def ros2(*args: str) -> subprocess.CompletedProcess:
         for _ in range(5):      # a fresh CLI node may not have discovered the graph yet
             run = subprocess.run([*ROS2, *args], env=ros2_env, capture_output=True, text=True,
-                                 timeout=60)
+                                 stdin=subprocess.DEVNULL, timeout=60)
             if 'Node not found' not in run.stdout + run.stderr:
                 return run
         return run

@@ -131,7 +131,8 @@ def test_load_node_service_answers(ros_node):
 def test_ros2_interface_show_prints_tf_message(ros2_env):
     """With the ROS 2 command line wheels, `ros2 interface show` finds the built package."""
     shown = subprocess.run([*ROS2, 'interface', 'show', 'tf2_msgs/msg/TFMessage'],
-                           env=ros2_env, capture_output=True, text=True, timeout=60)
+                           env=ros2_env, capture_output=True, text=True,
+                           stdin=subprocess.DEVNULL, timeout=60)
     assert shown.returncode == 0, shown.stderr
     lines = shown.stdout.splitlines()
     assert lines[0] == 'geometry_msgs/TransformStamped[] transforms'

@@ -33,8 +33,8 @@ class Launch:
         self.log, self.ros2 = log, ros2     # ros2: conftest's ros2_cli, for other commands
         with open(log, 'wb') as out:
             self.proc = subprocess.Popen([*ROS2, 'launch', 'uav_vs', file, *args], env=env,
-                                         stdout=out, stderr=subprocess.STDOUT,
-                                         start_new_session=True)
+                                         stdin=subprocess.DEVNULL, stdout=out,
+                                         stderr=subprocess.STDOUT, start_new_session=True)
 
     def output(self) -> str:
         return self.log.read_text(errors='replace')

@@ -29,8 +29,8 @@ def start(name: str, ros_args: list[str], log_dir: Path, label: str | None = Non
     path = log_dir / f'{label or name}.log'
     log = open(path, 'wb')
     argv = [executable(name), *args, *(['--ros-args', *ros_args] if ros_args else [])]
-    proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
-                            env={**os.environ, **(env or {})})
+    proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log,
+                            stderr=subprocess.STDOUT, env={**os.environ, **(env or {})})
     log.close()
     proc.log_path = path
     return proc
