@@ -7,10 +7,16 @@ off, holds, flies to a setpoint on the ground station's pose and lands on a pad 
 onboard pose. Every assertion is against the simulator's truth (`truth/pose`), and the
 ROS graph itself is asked what the controller flew on.
 """
+from collections import defaultdict
+
+from rclpy.serialization import deserialize_message
+
 from uav_vs.bag.reader import Bag
 from uav_vs.flight.replay import replay_flight
 from uav_vs.flight.report import FlightReport
 from uav_vs.flight.scenario import Landing, Scenario, Setpoint, fly
+from uav_vs.ros.convert import stamp_to_ns
+from uav_vs.ros.replay import message_class
 
 SCENARIO = Scenario('test', 1.3, Setpoint((0.0, 0.0, 1.3), hold=1.0),
                     (Setpoint((0.7, -0.5, 1.5), hold=1.5),),
@@ -52,12 +58,15 @@ def test_reaches_setpoint_and_lands_on_pad_on_vision_alone(tmp_path):
     for cam in ('cam1', 'cam2', 'cam3', 'onboard'):
         assert counts[f'{cam}/camera_info'] > 100
         assert abs(counts[f'{cam}/image_raw/compressed'] - counts[f'{cam}/camera_info']) <= 2, cam
+    posable = posable_poses(tmp_path / 'bag', {'ground': ('cam1', 'cam2', 'cam3'),
+                                                'onboard': ('onboard',)})
     replay = FlightReport.from_log(replay_flight(tmp_path / 'bag', tmp_path / 'replay'))
     print(replay.summary())
     assert not any(replay.exit_codes.values()), replay.exit_codes
     for name in ('ground', 'onboard'):
         score = replay.sources[name]
-        assert score.samples >= 0.95 * counts[f'{name}/pose'], (name, score)
+        assert posable[name] >= 0.9 * counts[f'{name}/pose'], (name, posable[name])
+        assert score.samples >= 0.95 * posable[name], (name, score, posable[name])
         assert score.position_rmse_m <= 0.05, (name, score)
     assert replay.commands.from_images > 0      # the controller ran on the replayed poses
 
@@ -81,3 +90,20 @@ def test_the_same_mission_flies_a_px4_vehicle(tmp_path):
     relay = (tmp_path / 'logs' / 'mavlink_relay_node.log').read_text()
     assert 'set_guided: done (OFFBOARD, disarmed)' in relay
     assert 'set_guided: done (OFFBOARD, armed)' in relay
+
+
+def posable_poses(bag, sources: dict[str, tuple[str, ...]]) -> dict[str, int]:
+    """Per pose source, the flight's poses whose camera frames and truth are all in the
+    bag: the poses a replay of the bag can give again and score (a recorder under load
+    may miss a message)."""
+    stamps: dict[str, set[int]] = defaultdict(set)
+    wanted = {f'{cam}/image_raw/compressed' for cams in sources.values() for cam in cams}
+    wanted |= {f'{name}/pose' for name in (*sources, 'truth')}
+    with Bag(bag) as recorded:
+        topics = [t for t in recorded.topics if t.lstrip('/') in wanted]
+        for m in recorded.messages(topics):
+            msg = deserialize_message(m.raw, message_class(m.msgtype))
+            stamps[m.topic.lstrip('/')].add(stamp_to_ns(msg.header.stamp))
+    return {name: len(stamps[f'{name}/pose'].intersection(
+                stamps['truth/pose'], *(stamps[f'{cam}/image_raw/compressed'] for cam in cams)))
+            for name, cams in sources.items()}
