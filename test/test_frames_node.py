@@ -14,6 +14,7 @@ import time
 import cv2
 import numpy as np
 import pytest
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovariance
 from nav_msgs.msg import Odometry
@@ -211,6 +212,26 @@ def test_static_frames_reach_a_late_subscriber(ros_node, processes):
     error = Rotation.from_quat(quaternion) * Rotation.from_quat(expected.quaternion).inv()
     assert error.magnitude() <= 1e-12
     assert proc.poll() is None
+
+
+def test_ros2_topic_echo_shows_the_static_frames(ros_node, processes, ros2_cli):
+    """The real `ros2 topic echo /tf_static` (the shared wheels), as a late subscriber."""
+    start(processes)
+    probe = Probe(ros_node)
+    assert wait_for(lambda: probe.diag, 30), processes.log('frames')   # spinning: sent
+    echo = ros2_cli('topic', 'echo', '--once', '--no-daemon', '--timeout', '30',
+                    '--qos-reliability', 'reliable', '--qos-durability', 'transient_local',
+                    '/tf_static', 'tf2_msgs/msg/TFMessage')
+    assert echo.returncode == 0, echo.stdout + echo.stderr
+    shown = yaml.safe_load(echo.stdout.split('---')[0])['transforms']
+    frames = {(t['header']['frame_id'], t['child_frame_id']): t['transform'] for t in shown}
+    assert sorted(frames) == [('base_link', 'onboard_camera_optical'), ('world', 'cam1_optical'),
+                              ('world', 'cam2_optical'), ('world', 'cam3_optical')]
+    for camera in ground_cameras():
+        t = frames[('world', camera.frame_id)]
+        translation = [t['translation'][k] for k in 'xyz']
+        quaternion = [t['rotation'][k] for k in 'xyzw']
+        assert_projects_as_the_camera(camera, np.array(translation), np.array(quaternion))
 
 
 @pytest.mark.parametrize('base_link_source', ['ground', 'odom', 'none'])
