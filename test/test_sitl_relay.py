@@ -2,9 +2,9 @@
 
 Truth is the simulator's own state (SIM_STATE, on a second serial port the relay does
 not use) and the bytes on the relay's link (a TCP tap between the Session and SITL's
-SERIAL0 decodes every SET_POSITION_TARGET_LOCAL_NED). The flight runs inside SITL's
-network namespace (`python test/test_sitl_relay.py SERIAL0 SERIAL1` there) and prints
-its measurements as JSON; the tests below judge them. SITL runs at SPEEDUP times real
+SERIAL0 decodes every SET_POSITION_TARGET_LOCAL_NED, and can cut the link in flight).
+The flight runs inside SITL's network namespace (`python test/test_sitl_relay.py SERIAL0
+SERIAL1` there) and prints its measurements as JSON; the tests below judge them. SITL runs at SPEEDUP times real
 time: speeds are in the autopilot's time, and the relay's rates in wall time.
 """
 import contextlib
@@ -29,6 +29,9 @@ SEND_RATE = 50.0
 # rate) and settle on the target within about 2 s of its time.
 PEAK, SETTLED = 1.3, 1.05
 SETTLE_TIME = 2.5 / SPEEDUP   # [s] wall
+LINK_TIMEOUT = 3.0            # SessionConfig.link_timeout [s] wall
+# ArduPilot's GUID_TIMEOUT (3 s) and its stop from 1 m/s, in its time, as wall seconds
+STOPPED_AFTER = (3.0 + 2.0) / SPEEDUP
 HUGE = 1.7976931348623157e308
 PHASES = {   # name: (ENU/FLU command, yaw rate, body frame, wall seconds)
     'huge_up': ((1e308, 1e308, 1e308), 1e308, False, 1.0),        # north-east, climbing
@@ -70,6 +73,19 @@ def test_every_setpoint_on_the_wire_is_finite_and_within_the_limits(flight):
     assert flight['refused_non_finite'] == 3   # inf, -inf, nan: ValueError, nothing sent
 
 
+def test_a_lost_link_is_noticed_the_autopilot_stops_and_the_relay_flies_on_after_it(flight):
+    loss = flight['link_loss']
+    assert loss['speed_before'] >= 0.9, loss
+    # SessionConfig.link_timeout after the last HEARTBEAT (wall time), and reported at once
+    assert loss['noticed_after'] <= LINK_TIMEOUT + 1.0, loss
+    # meanwhile ArduPilot's GUID_TIMEOUT stopped the vehicle: nothing reached it
+    assert loss['speed_while_lost'] <= 0.15, loss
+    assert loss['reconnects'] == 1 and loss['stale_setpoints'] == 0, loss
+    assert loss['resumed_setpoints'] > 10, loss
+    assert math.isclose(loss['velocity_after'][0], 0.5, abs_tol=0.1), loss   # north
+    assert abs(loss['velocity_after'][1]) < 0.1, loss
+
+
 def test_a_burst_is_rate_limited_on_the_wire_and_its_newest_command_is_flown(flight):
     burst = flight['burst']
     allowed = SEND_RATE * burst['seconds'] + SEND_BURST
@@ -83,7 +99,9 @@ def test_a_burst_is_rate_limited_on_the_wire_and_its_newest_command_is_flown(fli
 
 # ---------------------------------------------------------------- inside the namespace
 class WireTap:
-    """A TCP relay from a local port to SITL, decoding what the client sends."""
+    """A TCP relay from a local port to SITL, decoding what the client sends. While
+    `dropping` is set it forwards nothing either way (a radio out of range); a client
+    that reconnects gets a new connection to SITL."""
 
     def __init__(self, port: int):
         from uav_vs.autopilot.link import mavlink
@@ -91,21 +109,29 @@ class WireTap:
         self.server = socket.create_server(('127.0.0.1', 0))
         self.port = self.server.getsockname()[1]
         self.setpoints: list = []   # (time.monotonic(), SET_POSITION_TARGET_LOCAL_NED)
+        self.dropping = False
         threading.Thread(target=self._serve, args=(port,), daemon=True).start()
 
     def _serve(self, port: int) -> None:
-        client, _ = self.server.accept()
-        upstream = socket.create_connection(('127.0.0.1', port))
-        threading.Thread(target=self._pipe, args=(upstream, client, False), daemon=True).start()
-        self._pipe(client, upstream, True)
+        while True:
+            client, _ = self.server.accept()
+            upstream = socket.create_connection(('127.0.0.1', port))
+            threading.Thread(target=self._pipe, args=(upstream, client, False),
+                             daemon=True).start()
+            threading.Thread(target=self._pipe, args=(client, upstream, True),
+                             daemon=True).start()
 
     def _pipe(self, src: socket.socket, dst: socket.socket, decode: bool) -> None:
-        with contextlib.suppress(OSError):   # either side closed: the tap ends
+        with contextlib.suppress(OSError):   # either side closed: this connection ends
             while data := src.recv(65536):
+                if self.dropping:
+                    continue
                 dst.sendall(data)
                 for msg in (self.parser.parse_buffer(data) or []) if decode else []:
                     if msg.get_type() == 'SET_POSITION_TARGET_LOCAL_NED':
                         self.setpoints.append((time.monotonic(), msg))
+        for end in (src, dst):
+            end.close()
 
 
 class Truth:
@@ -198,12 +224,42 @@ def fly(serial0: int, serial1: int) -> dict:
         result['burst'] = {'commands': n + 1, 'setpoints': len(burst), 'seconds': seen - t0,
                            'last': list(_ned(burst[-1])),
                            'velocity': [sum(s[k] for s in late) / len(late) for k in (1, 2)]}
+        result['link_loss'] = lose_the_link(session, tap, truth)
         session.land()
     result['phases'] = {name: {'peak': truth.between(start, end + 0.3),   # and the stop
                                'settled': truth.between(start + SETTLE_TIME, end)}
                         for name, (start, end) in windows.items()}
     result['wire'] = _wire(m for _, m in tap.setpoints)
     return result
+
+
+def lose_the_link(session, tap: WireTap, truth: Truth) -> dict:
+    """Fly north at 1 m/s, then drop every byte both ways until the Session calls the link
+    lost, and let it reconnect; the controller (this loop) keeps commanding meanwhile."""
+    from uav_vs.autopilot.session import LinkState
+    hold(session, (0.0, 1.0, 0.0), 0.0, False, 1.0)
+    cut = time.monotonic()
+    tap.dropping = True
+    while session.send_velocity((0.0, 1.0, 0.0)):
+        assert time.monotonic() < cut + 10.0, 'the lost link was never noticed'
+        time.sleep(0.05)
+    lost = time.monotonic()
+    tap.dropping = False
+    while session.status().link is not LinkState.CONNECTED:
+        assert time.monotonic() < lost + 20.0, session.status()
+        time.sleep(0.05)
+    back = time.monotonic()
+    time.sleep(0.5)                  # nothing is sent until the controller commands again
+    stale = sum(t >= back for t, _ in tap.setpoints)
+    resumed = time.monotonic()
+    hold(session, (0.0, 0.5, 0.0), 0.0, False, 1.0)
+    late = [s for s in truth.samples if s[0] >= time.monotonic() - 0.3]
+    return {'speed_before': truth.between(cut - 0.3, cut)['speed'],
+            'speed_while_lost': truth.between(cut + STOPPED_AFTER, lost)['speed'],
+            'noticed_after': lost - cut, 'reconnects': session.status().reconnects,
+            'stale_setpoints': stale,
+            'resumed_setpoints': sum(t >= resumed for t, _ in tap.setpoints),
+            'velocity_after': [sum(s[k] for s in late) / len(late) for k in (1, 2)]}
 
 
 def _ned(msg) -> tuple[float, float, float]:
