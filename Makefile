@@ -32,7 +32,7 @@ CORE_TESTS := $(addprefix test/test_,$(addsuffix .py,body_pose calibration_error
 	onboard_scene oxford plane_geometry plane_pose sensor_switches servo sim_world \
 	target_tracking template_align triangulation))
 
-.PHONY: install test test-ubuntu2404 bench demo clean
+.PHONY: install test test-ubuntu2404 fuzz bench demo clean
 
 install: $(STAMP)
 
@@ -59,6 +59,10 @@ test-ubuntu2404: export AMENT_PREFIX_PATH := $(abspath $(UBUNTU_VENV))
 test-ubuntu2404: export PATH := $(UBUNTU_BIN):$(SYSTEM_PATH)
 test-ubuntu2404: $(UBUNTU_STAMP)
 	$(UBUNTU_BIN)/python -m pytest -n 2 $(UBUNTU_TESTS)
+
+# The fuzz harness alone, with SCALE (default 10) times the examples `make test` runs.
+fuzz: $(STAMP)
+	UAV_VS_FUZZ_SCALE=$(or $(SCALE),10) $(BIN)/python -m pytest -n 2 test/test_fuzz_nodes.py
 
 bench: $(STAMP)
 	$(BIN)/python -m bench

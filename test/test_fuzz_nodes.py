@@ -17,6 +17,7 @@ xfail(strict=True), so each must be removed from the set when its fix lands.
 One summary line per case is printed into pytest's output.
 """
 import math
+import os
 import threading
 import time
 from collections import defaultdict
@@ -603,9 +604,10 @@ CASES = {'camshift_node': ['serialized', 'image_fields', 'compressed', 'stamps']
          'fuzzy_controller_node': ['pose_fields', 'setpoint_fields', 'stamps'],
          'mavlink_relay_node': ['cmd_vel', 'vision_pose']}
 # Examples per case (default 15: over a thousand messages per node); a storm of valid
-# frames costs their processing.
+# frames costs their processing. UAV_VS_FUZZ_SCALE multiplies them (`make fuzz`).
 EXAMPLES = {'vision_pose': 8,     # one message at a time (the relay keeps only the newest)
             'stamps': 5, 'image_fields': 10}
+SCALE = float(os.environ.get('UAV_VS_FUZZ_SCALE', '1'))
 
 
 # ------------------------------------------------------------------ fixtures and test
@@ -646,7 +648,7 @@ def params():
             yield pytest.param(node, case, marks=marks, id=f'{node}-{case}')
 
 
-@pytest.mark.timeout(240)
+@pytest.mark.timeout(240 * max(1.0, SCALE))
 @pytest.mark.parametrize('node, case', list(params()))
 def test_node_survives_a_storm_and_still_answers(rigs, capsys, node, case):
     rig = rigs(node)
@@ -658,8 +660,8 @@ def test_node_survives_a_storm_and_still_answers(rigs, capsys, node, case):
     received_before = rig.count((counter,)) if counter else 0
     rig.checks()
 
-    @settings(max_examples=EXAMPLES.get(case, 15), deadline=None, database=None,
-              derandomize=True, phases=[Phase.explicit, Phase.generate],
+    @settings(max_examples=max(1, round(EXAMPLES.get(case, 15) * SCALE)), deadline=None,
+              database=None, derandomize=True, phases=[Phase.explicit, Phase.generate],
               suppress_health_check=list(HealthCheck))
     @given(st.lists(rig.cases()[case], **STORM))
     def storm(items):
