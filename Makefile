@@ -52,13 +52,15 @@ $(STAMP): $(SOURCES) requirements.txt requirements-dev.txt
 $(UBUNTU_STAMP): $(SOURCES) requirements-ubuntu2404.txt
 	$(call install_venv,$(UBUNTU_VENV),requirements-ubuntu2404.txt)
 
+# --dist loadscope: a module's tests run in one worker, so a module-scoped fixture (a SITL
+# flight, the fuzz harness's nodes) starts once, never twice on the same ports.
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 test
+	$(BIN)/python -m pytest -n 2 --dist loadscope test
 
 test-ubuntu2404: export AMENT_PREFIX_PATH := $(abspath $(UBUNTU_VENV))
 test-ubuntu2404: export PATH := $(UBUNTU_BIN):$(SYSTEM_PATH)
 test-ubuntu2404: $(UBUNTU_STAMP)
-	$(UBUNTU_BIN)/python -m pytest -n 2 $(UBUNTU_TESTS)
+	$(UBUNTU_BIN)/python -m pytest -n 2 --dist loadscope $(UBUNTU_TESTS)
 
 # The fuzz harness alone, with SCALE (default 10) times the examples `make test` runs.
 fuzz: $(STAMP)
