@@ -482,6 +482,11 @@ def test_signing_rejects_unsigned_traffic_both_ways_and_installs_the_key(ros_nod
     ('geofence.min:=[0.0, 0.0]', 'geofence.min: expected 3 numbers'),
     ('signing_key_file:=/nonexistent/key', 'signing_key_file: cannot read /nonexistent/key'),
     ('max_send_rate:=5.0', 'max_send_rate: expected at least stream_rate (10.0 Hz), got 5.0'),
+    ('connection:=tcp:nohost', "connection: expected tcp:HOST:PORT with a port in 0..65535, "
+                               "got 'tcp:nohost'"),
+    ('connection:=udpin:0.0.0.0:port', "connection: expected udpin:HOST:PORT with a port"),
+    ('connection:=serial0', "connection: expected udp:, udpin:, udpout:, udpbcast:, tcp:, "
+                            "tcpin: followed by HOST:PORT, or a serial device"),
 ])
 def test_bad_parameter_stops_the_node_with_one_fatal_line(tmp_path, override, expected):
     doc = yaml.safe_load(CONFIG.read_text())

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from uav_vs.autopilot.link import load_signing_key, mavlink, open_connection
+from uav_vs.autopilot.link import connection_problem, load_signing_key, mavlink, open_connection
 from uav_vs.autopilot.session import (SEND_BURST, AutopilotError, CommandError, CommandState,
                                       Limits, LinkState, Session, SessionConfig, fence_velocity,
                                       limit_velocity)
@@ -618,6 +618,23 @@ def test_the_fence_hovers_on_a_non_finite_position_estimate(position):
     fenced = fence_velocity(np.array([1.0, -1.0, 0.5]), np.array(position), (-5.0, -5.0, 0.0),
                             (5.0, 5.0, 3.0), 1.5)
     assert np.array_equal(fenced, np.zeros(3))
+
+
+@pytest.mark.parametrize('device, problem', [
+    ('tcp:127.0.0.1:5760', None), ('udpin:0.0.0.0:14550', None), ('udpout:gcs.local:0', None),
+    ('tcpin:[::1]:5760', None), ('/dev/ttyACM0', None), ('COM3', None),
+    ('tcp:nohost', 'expected tcp:HOST:PORT'), ('tcp::5760', 'expected tcp:HOST:PORT'),
+    ('udpin:0.0.0.0:', 'expected udpin:HOST:PORT'), ('udp:host:65536', 'expected udp:HOST:PORT'),
+    ('udpout:host:-1', 'expected udpout:HOST:PORT'), ('localhost:5760', 'or a serial device'),
+    ('', 'or a serial device')])
+def test_connection_strings_are_judged_by_their_form(device, problem):
+    found = connection_problem(device)
+    assert found is None if problem is None else problem in found, found
+
+
+def test_a_connection_that_cannot_be_right_is_refused_before_anything_opens():
+    with pytest.raises(ValueError, match="connection: expected tcp:HOST:PORT .* got 'tcp:nohost'"):
+        Session(SessionConfig(connection='tcp:nohost'))
 
 
 def test_limits_and_send_rate_must_be_finite_and_consistent():

@@ -38,6 +38,26 @@ NEW_STREAM_WINDOW = 6_000_000
 UNSIGNED, BAD_SIGNATURE, OLD_TIMESTAMP = 'unsigned', 'bad_signature', 'old_timestamp'
 
 
+NETWORK_PREFIXES = ('udp:', 'udpin:', 'udpout:', 'udpbcast:', 'tcp:', 'tcpin:')
+SERIAL_PREFIXES = ('/dev/', 'COM')
+
+
+def connection_problem(device: str) -> str | None:
+    """Why `device` cannot be a connection string, None when it can. Only the form is
+    judged: whether its host resolves or its port listens is found when it is opened
+    (and may change: a radio or VPN link can come up later)."""
+    if device.startswith(SERIAL_PREFIXES):
+        return None
+    prefix = next((p for p in NETWORK_PREFIXES if device.startswith(p)), None)
+    if prefix is None:
+        return (f"expected {', '.join(NETWORK_PREFIXES)} followed by HOST:PORT, or a serial "
+                f"device (/dev/..., COM...), got {device!r}")
+    host, colon, port = device.removeprefix(prefix).rpartition(':')
+    if not (colon and host and port.isdigit() and int(port) <= 65535):
+        return f'expected {prefix}HOST:PORT with a port in 0..65535, got {device!r}'
+    return None
+
+
 def open_connection(device: str, baud: int = 115200, source_system: int = 255,
                     source_component: int = mavlink.MAV_COMP_ID_MISSIONPLANNER) -> mavutil.mavfile:
     """A pymavlink connection: udpin:/udpout:/udp:HOST:PORT, tcp:HOST:PORT, tcpin:, or a serial device.

@@ -30,7 +30,8 @@ import numpy as np
 
 from . import frames
 from .link import (BAD_SIGNATURE, FORCE_DISARM, OLD_TIMESTAMP, UNSIGNED, VELOCITY_YAW_RATE_MASK,
-                   load_signing_key, mavlink, mavutil, open_connection, rejection_cause)
+                   connection_problem, load_signing_key, mavlink, mavutil, open_connection,
+                   rejection_cause)
 
 log = logging.getLogger(__name__)
 
@@ -309,7 +310,9 @@ RECONFIGURABLE = frozenset({'limits', 'stream_rate', 'max_send_rate', 'command_t
                             'link_timeout', 'ack_timeout', 'command_retries'})
 
 
-def _check_rates(config: SessionConfig) -> None:
+def _check_config(config: SessionConfig) -> None:
+    if problem := connection_problem(config.connection):
+        raise ValueError(f'connection: {problem}')
     if config.stream_rate <= 2.0:
         raise ValueError(f'stream_rate must be above 2 Hz (PX4 needs it), got {config.stream_rate}')
     if not config.max_send_rate >= config.stream_rate:
@@ -321,7 +324,7 @@ class Session:
     """MAVLink session: call start(), then the commands below; close() when done."""
 
     def __init__(self, config: SessionConfig):
-        _check_rates(config)
+        _check_config(config)
         self.config = config
         self._key = load_signing_key(config.signing_key_file) if config.signing_key_file else None
         self._cond = threading.Condition()
@@ -398,7 +401,7 @@ class Session:
         if fixed:
             raise ValueError(f'cannot be changed while running: {", ".join(sorted(fixed))}')
         config = replace(self.config, **changes)
-        _check_rates(config)
+        _check_config(config)
         with self._cond:
             self.config = config
             v, yaw_rate, body = self._setpoint     # the one re-streamed obeys the new limits

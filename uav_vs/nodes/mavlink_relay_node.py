@@ -54,7 +54,7 @@ from rclpy.task import Future
 from std_msgs.msg import Header
 from std_srvs.srv import SetBool, Trigger
 
-from uav_vs.autopilot.link import key_file_exposure, load_signing_key
+from uav_vs.autopilot.link import connection_problem, key_file_exposure, load_signing_key
 from uav_vs.autopilot.session import (AutopilotError, CommandState, LinkState, Limits, Session,
                                       SessionConfig)
 from uav_vs.ros import log_bridge
@@ -62,7 +62,6 @@ from uav_vs.ros.convert import msg_to_pose, odometry_to_msg, stamp_to_ns
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, run
 from uav_vs.ros.params import LiveParams, Param, ParameterError, T, declare
 
-CONNECTION_PREFIXES = ('udp:', 'udpin:', 'udpout:', 'udpbcast:', 'tcp:', 'tcpin:', '/dev/', 'COM')
 # cmd_vel: room for the commands of a short executor stall, relayed in order.
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 # vision pose: only the newest is worth forwarding.
@@ -146,9 +145,8 @@ PARAMS = [
 def session_config(p: dict, logger: RcutilsLogger) -> SessionConfig:
     """SessionConfig from the declared parameters; ParameterError names a bad one, a
     warning about the key file goes to `logger` (the node's)."""
-    if not p['connection'].startswith(CONNECTION_PREFIXES):
-        raise ParameterError(f"connection: expected tcp:, tcpin:, udp:, udpin:, udpout:HOST:PORT "
-                             f"or a serial device, got {p['connection']!r}")
+    if problem := connection_problem(p['connection']):
+        raise ParameterError(f'connection: {problem}')
     if p['signing_key_file']:
         check_key_file(p['signing_key_file'], logger)
     return SessionConfig(
