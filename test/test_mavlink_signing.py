@@ -102,16 +102,55 @@ def _free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-def _inject_forged(port: int, system: int, component: int) -> None:
+def _forged(system: int, component: int) -> list[bytes]:
     """Forged HEARTBEATs claiming (system, component) on every link id, an hour ahead."""
     timestamp = int((time.time() - 1420070400) * 1e5) + HOUR
+    frames = []
+    for link in range(256):
+        forger = mavlink.MAVLink(None, srcSystem=system, srcComponent=component)
+        forger.signing.secret_key, forger.signing.sign_outgoing = os.urandom(32), True
+        forger.signing.link_id, forger.signing.timestamp = link, timestamp
+        frames.append(bytes(forger.heartbeat_encode(mavlink.MAV_TYPE_GCS, 8, 0, 0, 0).pack(forger)))
+    return frames
+
+
+def _inject_forged(port: int, system: int, component: int) -> None:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        for link in range(256):
-            forger = mavlink.MAVLink(None, srcSystem=system, srcComponent=component)
-            forger.signing.secret_key, forger.signing.sign_outgoing = os.urandom(32), True
-            forger.signing.link_id, forger.signing.timestamp = link, timestamp
-            s.sendto(forger.heartbeat_encode(mavlink.MAV_TYPE_GCS, 8, 0, 0, 0).pack(forger),
-                     ('127.0.0.1', port))
+        for frame in _forged(system, component):
+            s.sendto(frame, ('127.0.0.1', port))
+
+
+class ForgingTap:
+    """A TCP relay between a client and a server that can slip frames into either
+    direction between the ones it forwards (someone on the path, with no key)."""
+
+    def __init__(self, server_port: int):
+        self.server = socket.create_server(('127.0.0.1', 0))
+        self.port = self.server.getsockname()[1]
+        self.lock = threading.Lock()
+        self.ends: dict[str, socket.socket] = {}
+        self.ready = threading.Event()
+        threading.Thread(target=self._serve, args=(server_port,), daemon=True).start()
+
+    def _serve(self, server_port: int) -> None:
+        client, _ = self.server.accept()
+        upstream = socket.create_connection(('127.0.0.1', server_port))
+        self.ends = {'client': client, 'server': upstream}
+        self.ready.set()
+        threading.Thread(target=self._pipe, args=(upstream, client), daemon=True).start()
+        self._pipe(client, upstream)
+
+    def _pipe(self, src: socket.socket, dst: socket.socket) -> None:
+        with contextlib.suppress(OSError):
+            while data := src.recv(65536):
+                with self.lock:
+                    dst.sendall(data)
+
+    def inject(self, towards: str, frames: list[bytes]) -> None:
+        assert self.ready.wait(5.0)
+        with self.lock:
+            for frame in frames:
+                self.ends[towards].sendall(frame)
 
 
 @contextlib.contextmanager
@@ -161,6 +200,33 @@ def test_a_forged_frame_does_not_lock_the_vehicle_out_of_the_relay(tmp_path):
         assert status.link is LinkState.CONNECTED and status.reconnects == 0
         assert status.rejected_bad_signature == 256 and status.rejected_old_timestamp == 0
         assert status.signing_problem is None
+
+
+def test_a_forged_frame_in_a_tcp_stream_locks_neither_party_out(tmp_path):
+    key_file = tmp_path / 'signing.key'
+    key_file.write_text(KEY.hex())
+    key_file.chmod(0o600)
+    vehicle_cfg = VehicleConfig(connection='tcpin:127.0.0.1:0', ready_delay=0.2, signing_key=KEY)
+    with MavlinkVehicle(vehicle_cfg) as vehicle:
+        tap = ForgingTap(vehicle.address[1])
+        config = SessionConfig(connection=f'tcp:127.0.0.1:{tap.port}', ack_timeout=0.5,
+                               signing_key_file=str(key_file))
+        with Session(config) as session:
+            session.wait_connected(5.0)
+            session.set_mode('GUIDED')
+            # towards the vehicle, as the session: its signed commands still count
+            tap.inject('server', _forged(255, mavlink.MAV_COMP_ID_MISSIONPLANNER))
+            session.set_mode('STABILIZE')
+            assert vehicle.truth().mode == 'STABILIZE'
+            # towards the session, as the vehicle: its next HEARTBEAT is still taken
+            injected = time.monotonic()
+            tap.inject('client', _forged(1, 1))
+            assert wait_for(lambda: time.monotonic() - session.status().heartbeat_age > injected,
+                            2.5)
+            status = session.status()
+            assert status.link is LinkState.CONNECTED and status.reconnects == 0
+            assert status.rejected_bad_signature == 256 and status.rejected_old_timestamp == 0
+            assert status.signing_problem is None
 
 
 # ---------------------------------------------------------------- misconfigurations, said
