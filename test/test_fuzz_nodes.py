@@ -109,6 +109,9 @@ class Rig:
     # case -> the counter of every message the node took in it, where it has one: a message
     # of a best-effort input lost on the way is then told from one taken and not refused.
     received: dict[str, str] = {}
+    # A node whose answer depends on the frames it has taken (a tracker's keyframe) starts
+    # afresh for each case: one case's storm may move it, several add up.
+    fresh_each_case = False
 
     def __init__(self, probe: Probe, log_dir: Path) -> None:
         self.probe, self.node, self.log_dir = probe, probe.node, log_dir
@@ -342,6 +345,7 @@ class CamshiftRig(VisionRig):
 class HomographyRig(VisionRig):
     executable, status, prefix = 'homography_pose_node', '/homography_pose_node', '/onboard/'
     output = (PoseStamped, '/onboard/pose')
+    fresh_each_case = True
 
     def args(self):
         return ['--params-file', str(ONBOARD), '-p', 'homography_pose.image_qos:=reliable',
@@ -622,7 +626,8 @@ def probe():
 @pytest.fixture(scope='module')
 def rigs(probe, tmp_path_factory):
     """One long-lived process per node type, started on first use; restarted when a
-    case left it dead or failed (so one defect does not spill into the next case)."""
+    case left it dead or failed (so one defect does not spill into the next case), and
+    for every case where the node keeps state from the frames it took."""
     running: dict[str, Rig] = {}
     log_dir = tmp_path_factory.mktemp('fuzz_logs')
 
@@ -631,7 +636,7 @@ def rigs(probe, tmp_path_factory):
         if rig is None:
             rig = running[name] = RIGS[name](probe, log_dir)
             rig.start()
-        elif not rig.alive() or getattr(rig, 'tainted', False):
+        elif not rig.alive() or rig.tainted or rig.fresh_each_case:
             rig.start()
         rig.tainted = False
         return rig
