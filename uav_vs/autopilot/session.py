@@ -252,12 +252,18 @@ def limit_velocity(v: tuple[float, float, float], yaw_rate: float,
     Finite for any finite input, 1e308 and subnormals included (no intermediate
     overflows); ValueError for a non-finite one.
     """
-    x, y, z = _finite(v, 'velocity command')
-    (yaw_rate,) = _finite((yaw_rate,), 'yaw rate command')
+    x, y, z = v
+    x, y, z, yaw_rate = float(x), float(y), float(z), float(yaw_rate)
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        raise ValueError(f'velocity command is not finite: {[x, y, z]}')
+    if not math.isfinite(yaw_rate):
+        raise ValueError(f'yaw rate command is not finite: {yaw_rate}')
     x, y = clip_norm(x, y, limits.max_speed)
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ValueError(f'limited velocity is not finite: {[x, y, z]}')
     z = min(max(z, -limits.max_descent), limits.max_climb)
     yaw_rate = min(max(yaw_rate, -limits.max_yaw_rate), limits.max_yaw_rate)
-    return _finite((x, y, z), 'limited velocity'), yaw_rate
+    return (x, y, z), yaw_rate
 
 
 def clip_norm(x: float, y: float, limit: float) -> tuple[float, float]:
@@ -266,22 +272,14 @@ def clip_norm(x: float, y: float, limit: float) -> tuple[float, float]:
     Divided by its largest component first, the vector has norm in [1, sqrt 2], so
     neither the norm nor the scaling can overflow, however large x and y are.
     """
-    m = max(abs(x), abs(y))
-    if m == 0.0:
-        return x, y
+    if abs(x) <= limit and abs(y) <= limit and math.hypot(x, y) <= limit:
+        return x, y       # the usual command: within the limit (hypot overflows to inf only)
+    m = max(abs(x), abs(y))      # > 0: (0, 0) is within any limit
     ux, uy = x / m, y / m
     n = math.hypot(ux, uy)
     if m <= limit / n:
         return x, y
     return ux * (limit / n), uy * (limit / n)
-
-
-def _finite(values, what: str) -> tuple[float, ...]:
-    """`values` as floats; ValueError naming `what` unless every one is finite."""
-    values = tuple(map(float, values))
-    if not all(map(math.isfinite, values)):
-        raise ValueError(f'{what} is not finite: {list(values)}')
-    return values
 
 
 def fence_velocity(v_world: np.ndarray, position: np.ndarray | None, lo, hi,
