@@ -223,7 +223,11 @@ def test_non_finite_and_wrong_frame_poses_are_counted_and_never_commanded(ros_no
     proc = start(processes, 'controller.enabled:=true')
     assert wait_for(lambda: probe.setpoint.get_subscription_count() > 0, 30)
     probe.setpoint.publish(pose_to_msg([1.0, 1.0, 1.0], [0, 0, 0, 1.0], Header(frame_id='world')))
-    time.sleep(0.3)
+    # The setpoint and the poses travel on separate topics: the bad poses go out only
+    # once the node holds the setpoint, so it is they alone that keep it from commanding.
+    assert wait_for(lambda: probe.diag.get('message') == 'no measurement yet: zero command', 10), \
+        probe.diag
+    assert wait_for(lambda: probe.pose.get_subscription_count() > 0, 10)
     probe.pose.publish(pose_to_msg([math.nan, 0.0, 1.0], [0, 0, 0, 1.0], Header(frame_id='world')))
     probe.pose.publish(pose_to_msg([0.0, math.inf, 1.0], [0, 0, 0, 1.0], Header(frame_id='world')))
     probe.pose.publish(pose_to_msg([0.0, 0.0, 1.0], [0, 0, 0, 1.0], Header(frame_id='map')))
