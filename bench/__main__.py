@@ -11,6 +11,7 @@ SUITES = {
     'onboard': ['onboard_homography', 'onboard_pose', 'onboard_template'],
     'fuzzy': ['fuzzy'],
     'mavlink': ['mavlink', 'mavlink_relay'],
+    'relay': ['relay_command'],
     'bags': ['bags'],
     'convert': ['convert'],
     'graph': ['graph_latency'],

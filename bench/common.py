@@ -39,15 +39,15 @@ def report(suite: str, case: str, ms: np.ndarray, reference: str | None = None,
     carries accuracy figures or anything else the case measures.
     """
     med, p95 = summary(ms)
-    row: dict = {'suite': suite, 'case': case, 'median_ms': round(med, 4),
-                 'p95_ms': round(p95, 4), 'rate_hz': round(1e3 / med, 1) if med > 0 else None,
+    row: dict = {'suite': suite, 'case': case, 'median_ms': round(med, 6),
+                 'p95_ms': round(p95, 6), 'rate_hz': round(1e3 / med, 1) if med > 0 else None,
                  'reference': reference, 'ref_median_ms': None,
                  'machine': f'{platform.machine()} {platform.processor() or ""}'.strip()}
     line = f'{case:<34} median {med:9.3f} ms  p95 {p95:9.3f} ms  {row["rate_hz"]:>9} Hz'
     if ref_ms is not None:
         rmed, rp95 = summary(ref_ms)
-        row['ref_median_ms'] = round(rmed, 4)
-        row['ref_p95_ms'] = round(rp95, 4)
+        row['ref_median_ms'] = round(rmed, 6)
+        row['ref_p95_ms'] = round(rp95, 6)
         line += f'   | {reference}: median {rmed:.3f} ms  p95 {rp95:.3f} ms'
     row.update(extra)
     if extra:

@@ -1,7 +1,7 @@
 """Before and after in one run: `python -m bench.compare [--rounds N] REV [suite ...]`.
 
 Checks REV out into a temporary git worktree and runs the named suites (default:
-convert fuzzy ground mavlink) against REV's package and against this checkout's, in
+convert fuzzy ground mavlink relay) against REV's package and against this checkout's, in
 alternating rounds so that a change in the machine's load falls on both sides. Each
 side runs its own benchmark code (a module REV lacks is taken from this checkout), in
 a process whose PYTHONPATH puts that side's tree first, so its nodes too run that
@@ -21,7 +21,7 @@ from bench.__main__ import SUITES
 from bench.common import RESULTS
 
 HERE = Path(__file__).resolve().parents[1]
-DEFAULT_SUITES = ['convert', 'fuzzy', 'ground', 'mavlink']
+DEFAULT_SUITES = ['convert', 'fuzzy', 'ground', 'mavlink', 'relay']
 SIDE_TIMEOUT = 900.0     # s for one side's suites: a benchmark that hangs ends the side
 
 

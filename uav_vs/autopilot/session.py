@@ -463,10 +463,12 @@ class Session:
             now = time.monotonic()
             self._setpoint = (v, yaw_rate, bool(body))
             self._last_command = now
-            self._coalesced += self._unsent_waiting()   # replaced before it was sent
+            if self._unsent and self._command_state is not CommandState.IDLE:
+                self._coalesced += 1            # the held command, replaced before it was sent
             self._command_state = CommandState.ACTIVE
-            if self._refill(now) >= 1.0:
-                self._send_setpoint(now)
+            credit = self._refill(now)
+            if credit >= 1.0:
+                self._send_setpoint(now, credit)
             else:
                 self._unsent = True   # the link thread sends it when the next token comes
                 self._held += 1
@@ -681,8 +683,9 @@ class Session:
         """STATUSTEXT received in [start, end] (time.monotonic()), oldest first."""
         return [text for stamp, text in self._texts if start <= stamp <= end]
 
-    def _send_setpoint(self, now: float) -> None:
-        """Write the current setpoint (zero when hovering), fenced, in the autopilot's frame."""
+    def _send_setpoint(self, now: float, credit: float) -> None:
+        """Write the current setpoint (zero when hovering), fenced, in the autopilot's frame;
+        `credit` is the send credit refilled to `now`."""
         v, yaw_rate, body = self._setpoint
         if self._command_state is CommandState.HOVER:
             v, yaw_rate = (0.0, 0.0, 0.0), 0.0
@@ -696,10 +699,11 @@ class Session:
         self._conn.mav.set_position_target_local_ned_send(
             int((now - self._t0) * 1e3) & 0xFFFFFFFF, *self._target, frame, VELOCITY_YAW_RATE_MASK,
             0.0, 0.0, 0.0, vx, vy, vz, 0.0, 0.0, 0.0, 0.0, float(frames.yaw_rate_enu_to_ned(yaw_rate)))
-        self._send_credit = max(self._refill(now) - 1.0, 0.0)
-        self._unsent = False
+        self._send_credit = max(credit - 1.0, 0.0)
         self._next_setpoint = now + 1.0 / self.config.stream_rate
-        self._cond.notify_all()
+        if self._unsent:
+            self._unsent = False
+            self._cond.notify_all()     # close() waits for a held command to go out
 
     def _refill(self, now: float) -> float:
         """The send credit, refilled at max_send_rate since the last refill, at most SEND_BURST."""
@@ -819,7 +823,7 @@ class Session:
             self._command_state = state = CommandState.HOVER
             log.info('command input stale for %.2f s: hovering', now - self._last_command)
         if state in (CommandState.ACTIVE, CommandState.HOVER) and now >= self._next_setpoint:
-            self._send_setpoint(now)
+            self._send_setpoint(now, self._refill(now))
 
     def _lose_link(self, now: float) -> None:
         if self._link is LinkState.CONNECTED:
