@@ -90,6 +90,38 @@ def test_switched_on_effects_change_what_is_published(ros_node, processes):
     assert max(delays) < latency + jitter + 0.5, max(delays)
 
 
+def test_unsynchronised_cameras_stamp_their_own_capture(ros_node, processes):
+    """Camera 1 captures at the instant of truth/pose; cameras 2 and 3 each a fixed lag
+    (at most unsynchronised.lag) plus a per-frame jitter later, and stamp that."""
+    lag, jitter = 0.02, 0.002
+    proc = processes('sim_world', [*FILES, '-p', f'vehicle.connection:=tcpin:127.0.0.1:{free_port()}',
+                                   '-p', 'onboard.rate:=0.0', '-p', 'unsynchronised.enabled:=true',
+                                   '-p', f'unsynchronised.lag:={lag}',
+                                   '-p', f'unsynchronised.jitter:={jitter}'])
+    stamps: dict[str, list[int]] = {name: [] for name in ('cam1', 'cam2', 'cam3', 'truth')}
+    for name in ('cam1', 'cam2', 'cam3'):
+        ros_node.create_subscription(
+            Image, f'/{name}/image_raw',
+            lambda m, name=name: stamps[name].append(stamp_to_ns(m.header.stamp)),
+            qos_profile_sensor_data)
+    ros_node.create_subscription(PoseStamped, '/truth/pose',
+                                 lambda m: stamps['truth'].append(stamp_to_ns(m.header.stamp)), 50)
+    assert wait_for(lambda: all(len(stamps[n]) >= 30 for n in ('cam1', 'cam2', 'cam3')), 90), \
+        proc.poll()
+    truth = np.array(sorted(stamps['truth']))
+    assert set(stamps['cam1']) <= set(truth.tolist())
+    lags = {}
+    for name in ('cam2', 'cam3'):
+        got = np.array([s for s in stamps[name] if s < truth[-1]])
+        nominal = truth[np.searchsorted(truth, got, side='right') - 1]
+        lags[name] = (got - nominal) * 1e-9
+        assert lags[name].min() >= 0 and lags[name].max() <= lag + jitter + 1e-6, lags[name]
+        # a fixed lag drawn once, plus the jitter
+        assert np.ptp(lags[name]) <= jitter + 1e-6, lags[name]
+    assert max(lags['cam2'].max(), lags['cam3'].max()) > 0.002
+    assert proc.poll() is None
+
+
 @pytest.mark.parametrize('override, expected', [
     ('ground.background:=nope.jpg', 'ground.background: cannot read'),
     ('onboard.rate:=-1.0', 'onboard.rate: expected a number in [0, 60]'),
@@ -99,6 +131,7 @@ def test_switched_on_effects_change_what_is_published(ros_node, processes):
     ('drops.probability:=1.5', 'drops.probability: expected a number in [0, 1]'),
     ('calibration.angle_sigma:=2.0', 'calibration.angle_sigma: expected a number in [0, 0.5]'),
     ('wind.gust_sigma:=-0.1', 'wind.gust_sigma: expected a number in [0, 5]'),
+    ('unsynchronised.lag:=0.5', 'unsynchronised.lag: expected a number in [0, 0.1]'),
 ])
 def test_bad_parameter_stops_it_with_one_line(override, expected):
     run = subprocess.run([executable('sim_world'), '--ros-args', *FILES, '-p', override],

@@ -11,17 +11,19 @@ the three params files:
     sim_world --ros-args --params-file config/ground_trinocular.yaml \\
         --params-file config/onboard.yaml --params-file config/sim_world.yaml
 
-Publishes, every frame with the stamp of the instant the truth was sampled:
+Publishes, every frame with the stamp of the instant the truth was sampled (a ground
+camera lagging the first, with `unsynchronised` on: its own capture's):
 `camK/image_raw` (sensor_msgs/Image bgr8, sensor-data QoS), `camK/image_raw/compressed`
 (JPEG of `world.jpeg_quality`, encoded only while someone subscribes, e.g. a bag
 recorder) and `camK/camera_info` for each ground camera, the same three under `onboard/`
 (not while the onboard camera is below `onboard.min_height`), `truth/pose`
 (PoseStamped, base_link in `world` ENU, for evaluation only) and /diagnostics.
 The camera effects of uav_vs.sim.camera_effects (noise, lens distortion, motion blur,
-exposure drift, JPEG artefacts, dropped frames, latency), calibration error (the cameras
-render from a rig a little off the calibration camera_info carries) and, for the builtin vehicle,
-wind gusts and the drift of its estimate are each switched by their own parameter
-group; by default only the noise and the calibrated distortion are on.
+exposure drift, JPEG artefacts, dropped frames, latency, unsynchronised ground cameras),
+calibration error (the cameras render from a rig a little off the calibration
+camera_info carries) and, for the builtin vehicle, wind gusts and the drift of its
+estimate are each switched by their own parameter group; by default only the noise and
+the calibrated distortion are on.
 Every parameter is read-only: the world, its vehicle and cameras are built at start-up.
 """
 import time
@@ -37,13 +39,13 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from uav_vs.nodes.homography_pose_node import ONBOARD_PARAMS
-from uav_vs.ros.convert import (bgr_to_compressed, bgr_to_image, camera_info, pose_to_msg,
-                                stamp_to_ns)
+from uav_vs.ros.convert import (bgr_to_compressed, bgr_to_image, camera_info, ns_to_stamp,
+                                pose_to_msg, stamp_to_ns)
 from uav_vs.ros.ground_params import declare_cameras, declare_landmarks
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, run
 from uav_vs.ros.params import Param, T, declare
 from uav_vs.sim.calibration_error import CalibrationSpread, true_camera, true_mount
-from uav_vs.sim.camera_effects import CameraEffects, EffectsConfig, Latency
+from uav_vs.sim.camera_effects import CameraEffects, CameraLags, EffectsConfig, Latency
 from uav_vs.sim.delay_line import DelayLine
 from uav_vs.sim.ground_scene import GroundScene
 from uav_vs.sim.mavlink_vehicle import CUSTOM_MODES, MavlinkVehicle, VehicleConfig
@@ -135,6 +137,12 @@ PARAMS = [
     Param('latency.mean', T.DOUBLE, 0.03, 'capture-to-publication delay, s', 0.0, 1.0),
     Param('latency.jitter', T.DOUBLE, 0.005, 'uniform jitter of the delay, s (at most '
           'latency.mean)', 0.0, 1.0),
+    Param('unsynchronised.enabled', T.BOOL, False, 'the ground cameras are not triggered '
+          'together: each after the first captures (and stamps its frame) a little later'),
+    Param('unsynchronised.lag', T.DOUBLE, 0.005, "largest fixed lag of a camera's capture "
+          'behind the first, s (each drawn once in [0, lag])', 0.0, 0.1),
+    Param('unsynchronised.jitter', T.DOUBLE, 0.001, 'per-frame jitter added to each lag, s '
+          '(uniform in [0, jitter])', 0.0, 0.1),
 ]
 
 
@@ -210,13 +218,18 @@ class SimWorldNode(Node):
         except FileNotFoundError as err:
             raise ValueError(f'ground.background: {err}') from None
         onboard_scene = OnboardScene(onboard.camera, onboard.camera_to_body, noise_sigma=0.0)
-        seeds = np.random.SeedSequence(p['world.seed']).spawn(len(ground.cameras) + 3)
+        n = len(ground.cameras)
+        seeds = np.random.SeedSequence(p['world.seed']).spawn(n + 4)
         self.ground_effects = [
             CameraEffects(effects_config(p, p['ground.noise_sigma']), (c.height, c.width), s)
             for c, s in zip(ground.cameras, seeds)]
         self.onboard_effects = CameraEffects(effects_config(p, p['onboard.noise_sigma']),
                                              (onboard.camera.height, onboard.camera.width),
-                                             seeds[-3])
+                                             seeds[n])
+        self.lags = None
+        if p['unsynchronised.enabled']:
+            self.lags = CameraLags(n, p['unsynchronised.lag'], p['unsynchronised.jitter'],
+                                   np.random.default_rng(seeds[n + 3]))
         if p['latency.jitter'] > p['latency.mean']:
             raise ValueError(f"latency.jitter: {p['latency.jitter']:g} s is more than "
                              f"latency.mean {p['latency.mean']:g} s")
@@ -225,7 +238,7 @@ class SimWorldNode(Node):
             self.delay_line = DelayLine('sim_world latency')
             self.latency = {which: Latency(p['latency.mean'], p['latency.jitter'],
                                            np.random.default_rng(s))
-                            for which, s in zip(('ground', 'onboard'), seeds[-2:])}
+                            for which, s in zip(('ground', 'onboard'), seeds[n + 1:n + 3])}
         self.dt = {'ground': 1.0 / p['ground.rate'] if p['ground.rate'] > 0 else 0.0,
                    'onboard': 1.0 / p['onboard.rate'] if p['onboard.rate'] > 0 else 0.0}
         vehicle, where = self._vehicle(p)
@@ -305,16 +318,19 @@ class SimWorldNode(Node):
     def on_ground(self) -> None:
         state, header = self._sample()
         start = time.perf_counter()
-        images = self.world.ground_images(state)
+        lags = None if self.lags is None else self.lags.sample()
+        images = self.world.ground_images(state, lags)
         velocities = self.world.ground_image_velocities(state)
         frames = [self._capture(fx, image, v, 'ground')
                   for fx, image, v in zip(self.ground_effects, images, velocities)]
         self.render_ms['ground_render_ms'] = round((time.perf_counter() - start) * 1e3, 2)
+        stamps = [header.stamp] * len(frames) if lags is None else \
+            [ns_to_stamp(stamp_to_ns(header.stamp) + int(round(dt * 1e9))) for dt in lags]
 
         def publish() -> None:
-            for camera, frame in zip(self.cameras, frames):
+            for camera, frame, stamp in zip(self.cameras, frames, stamps):
                 if frame is not None:
-                    camera.publish(frame, header.stamp)
+                    camera.publish(frame, stamp)
         self._deliver('ground', header, publish)
         self.counts['ground_frames'] += 1
 

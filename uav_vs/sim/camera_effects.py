@@ -12,7 +12,9 @@ its own:
   as `Camera`) makes of an ideal pinhole image;
 - `Exposure`: auto-exposure gain and offset drifting slowly, clipped to 0..255;
 - `FrameDrops`: frames lost with a probability;
-- `Latency`: the capture-to-publication delay, so the stamp is earlier than publication.
+- `Latency`: the capture-to-publication delay, so the stamp is earlier than publication;
+- `CameraLags`: ground cameras not triggered together, each capturing a little after
+  the first.
 
 `CameraEffects` chains the image effects in the order light meets them: motion blur
 (during the exposure), exposure gain, sensor noise, JPEG (the link).
@@ -176,6 +178,26 @@ class Latency:
         delay = max(delay, self._last - capture)
         self._last = capture + delay
         return delay
+
+
+class CameraLags:
+    """Cameras that are not triggered together (section 3's rig assumes they are): the
+    first captures at the frame's instant, each other camera `lag_k + e` s later, lag_k
+    drawn once in [0, lag] (its trigger or clock offset), e in [0, jitter] per frame.
+    Each frame is stamped with its own capture instant, as a camera driver stamps it.
+    """
+
+    def __init__(self, n_cameras: int, lag: float, jitter: float,
+                 rng: np.random.Generator) -> None:
+        self.lags = np.concatenate([[0.0], rng.uniform(0.0, lag, n_cameras - 1)])
+        self.jitter = jitter
+        self._rng = rng
+
+    def sample(self) -> np.ndarray:
+        """Each camera's capture instant after the frame's, s (the first's is 0)."""
+        e = self.jitter * self._rng.random(len(self.lags))
+        e[0] = 0.0
+        return self.lags + e
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ lens distortion), so the ground truth is exact:
 The trajectory (`figure_eight`) gives the truth pose: position in `world` ENU and the
 base_link (FLU) attitude, tilted with the acceleration as a multirotor is.
 """
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -137,16 +138,20 @@ class GroundScene:
         sun = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
         return float(gain), sun
 
-    def render(self, pose: Pose) -> tuple[list[np.ndarray], RenderInfo]:
-        """BGR uint8 images, one per camera, and the landmarks' visibility at this pose."""
-        gain, sun = self.lighting(pose.t)
+    def render(self, pose: Pose | Sequence[Pose]) -> tuple[list[np.ndarray], RenderInfo]:
+        """BGR uint8 images, one per camera, and the landmarks' visibility at this pose
+        (or at each camera's own pose: cameras that capture at different instants)."""
+        poses = [pose] * len(self.cameras) if isinstance(pose, Pose) else list(pose)
+        if len(poses) != len(self.cameras):
+            raise ValueError(f'{len(poses)} poses for {len(self.cameras)} cameras')
         shape = (len(self.cameras), self.n_landmarks)
         info = RenderInfo(np.zeros(shape), np.full(shape + (2,), np.nan),
                           np.full(shape + (2,), np.nan))
         images = []
-        for k, cam in enumerate(self.cameras):
+        for k, at in enumerate(poses):
+            gain, sun = self.lighting(at.t)
             img = cv2.convertScaleAbs(self._background[k], alpha=gain)
-            self._draw_vehicle(k, img, pose, gain, sun, info)
+            self._draw_vehicle(k, img, at, gain, sun, info)
             images.append(self._noise(img))
         return images, info
 

@@ -106,10 +106,17 @@ class SimWorld:
     def state(self) -> VehicleState:
         return self.vehicle.state()
 
-    def ground_images(self, state: VehicleState) -> list[np.ndarray]:
-        """One BGR image per ground camera, in `cameras.names` order (section 3)."""
-        images, _ = self.ground.render(Pose(state.time - self._t0, state.position, state.yaw,
-                                            state.R))
+    def ground_images(self, state: VehicleState, lags: np.ndarray | None = None
+                      ) -> list[np.ndarray]:
+        """One BGR image per ground camera, in `cameras.names` order (section 3); with
+        `lags`, camera k captures lags[k] s after `state` (moved on by its velocity, its
+        attitude kept: lags are milliseconds)."""
+        t = state.time - self._t0
+        if lags is None:
+            images, _ = self.ground.render(Pose(t, state.position, state.yaw, state.R))
+        else:
+            images, _ = self.ground.render([Pose(t + dt, state.position + dt * state.velocity,
+                                                 state.yaw, state.R) for dt in lags])
         return images
 
     def ground_image_velocities(self, state: VehicleState) -> list[np.ndarray]:
