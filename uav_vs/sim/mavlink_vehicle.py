@@ -36,8 +36,10 @@ What it does like ArduPilot Copter 4.x (what the relay relies on):
   or another frame: stop and hold, silently. With yaw and yaw rate both ignored the
   nose turns to the direction of travel. GUID_TIMEOUT: the last target is flown for
   `guid_timeout` s, then the vehicle stops. Position targets are not simulated.
-- LAND descends at land_speed and disarms on touchdown. STABILIZE simulates no pilot
-  sticks: the vehicle holds still.
+- LAND descends at land_speed over the position its estimate had when LAND began (the
+  position controller holds it: a P loop of `land_hold_gain`, PSC_POSXY_P, against
+  gusts) and disarms on touchdown. STABILIZE simulates no pilot sticks: the vehicle
+  holds still.
 - MAVLink 2 signing when a key is configured or installed by SETUP_SIGNING (no ACK,
   ignored while armed): outgoing signed, unsigned incoming dropped, a signature checked
   before its timestamp counts (link.verify_signatures_first).
@@ -113,6 +115,7 @@ class VehicleConfig:
     tau_yaw: float = 0.2                # yaw-rate lag [s]
     takeoff_speed: float = 2.5          # [m/s] (WPNAV_SPEED_UP)
     land_speed: float = 0.5             # [m/s] (LAND_SPEED)
+    land_hold_gain: float = 1.0         # [1/s] LAND's position hold (PSC_POSXY_P, MPC_XY_P)
     guid_timeout: float = 3.0           # [s] (GUID_TIMEOUT)
     disarm_delay: float = 10.0          # [s] armed on the ground without takeoff
     system_id: int = 1
@@ -215,6 +218,7 @@ class MavlinkVehicle:
         self._v = np.zeros(3)                   # flown, relative to the air
         self._gust = np.zeros(3)                # wind not yet rejected: ground = v + gust
         self._drift = np.zeros(3)               # estimate - truth
+        self._land_at = np.zeros(2)             # estimated N, E where LAND began [m]
         self._rng = np.random.default_rng(config.seed)
         self._yaw = self._yaw_rate = 0.0
         self._v_target = np.zeros(3)
@@ -340,7 +344,8 @@ class MavlinkVehicle:
         """Velocity (NED) and yaw-rate targets of the current mode."""
         cfg = self.config
         if self._mode == 'LAND':
-            return np.array([0.0, 0.0, cfg.land_speed]), 0.0
+            hold = cfg.land_hold_gain * (self._land_at - self._estimate()[:2])
+            return np.array([*hold, cfg.land_speed]), 0.0
         if self._takeoff_alt is not None:   # ArduPilot GUIDED or PX4 AUTO.TAKEOFF climb
             remaining = self._takeoff_alt + self._p[2]
             if remaining > 0.02:  # climb rate led by the lag: critically damped, no overshoot
@@ -482,6 +487,8 @@ class MavlinkVehicle:
 
     def _set_mode(self, mode: str) -> None:
         self._mode = mode
+        if mode == 'LAND':
+            self._land_at = self._estimate()[:2].copy()
         self._takeoff_alt = None
         self._target_time = -math.inf
 
