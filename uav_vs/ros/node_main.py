@@ -38,8 +38,10 @@ NO_PUBLISHER_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
 
 # A stopping node that has not finished tearing down (rclpy, the DDS participant) after
 # this long exits anyway (status 1, its threads' stacks printed): a node asked to stop
-# always stops.
-SHUTDOWN_GRACE_S = 4.0
+# always stops. Destroying the DDS participant was seen to take over 4 s on a loaded
+# machine; `ros2 launch` sends SIGTERM after 5 s (which does not cut this short) and
+# SIGKILL after 10 s, so the grace ends before that.
+SHUTDOWN_GRACE_S = 8.0
 
 EXECUTOR_ENV = 'UAV_VS_EXECUTOR'
 EXECUTORS: dict[str, Callable[[], Executor]] = {'events': EventsExecutor,
@@ -135,10 +137,11 @@ def run(factory: Callable[[], Node | Sequence[Node]], name: str,
         # rclpy's C++ (seen destroying the DDS participant) holds. It prints every thread's
         # stack and exits 1; a shutdown that finishes exits 0 first.
         faulthandler.dump_traceback_later(SHUTDOWN_GRACE_S, exit=True)
+        # The executor is left as it is: its shutdown() unregisters and frees its SIGINT
+        # guard condition, which rclpy's signal thread may be triggering at that moment
+        # (a segfault, seen under load); the process exits right after.
         for node in nodes:
             spinner.remove_node(node)
-        spinner.shutdown()
-        for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
     _exit_after_shutdown()
