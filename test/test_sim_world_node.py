@@ -108,11 +108,15 @@ def test_unsynchronised_cameras_stamp_their_own_capture(ros_node, processes):
                                  lambda m: stamps['truth'].append(stamp_to_ns(m.header.stamp)), 50)
     assert wait_for(lambda: all(len(stamps[n]) >= 30 for n in ('cam1', 'cam2', 'cam3')), 90), \
         proc.poll()
+    # Only frames captured while truth/pose was received: either subscription may match
+    # first.
     truth = np.array(sorted(stamps['truth']))
-    assert set(stamps['cam1']) <= set(truth.tolist())
+    assert len(truth) >= 10, proc.poll()
+    assert {s for s in stamps['cam1'] if truth[0] <= s <= truth[-1]} <= set(truth.tolist())
     lags = {}
     for name in ('cam2', 'cam3'):
-        got = np.array([s for s in stamps[name] if s < truth[-1]])
+        got = np.array([s for s in stamps[name] if truth[0] <= s < truth[-1]])
+        assert len(got) >= 10, (name, len(got))
         nominal = truth[np.searchsorted(truth, got, side='right') - 1]
         lags[name] = (got - nominal) * 1e-9
         assert lags[name].min() >= 0 and lags[name].max() <= lag + jitter + 1e-6, lags[name]
