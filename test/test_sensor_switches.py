@@ -3,8 +3,8 @@ own switch (config/sensors_realistic.yaml, uav_vs.sim.camera_effects): frames re
 from a known flight, degraded by that one effect at the profile's setting, measured by
 the ground station (CamShift per camera, eq 24-26) and the onboard camera (section 4),
 and compared with the flight's truth. What the effects do to the closed loop is the
-demo's and test_closed_loop's. Unsynchronised ground cameras are measured here too, each
-camera rendered at its own capture instant; the rest of the profile (latency, wind,
+demo's and test_closed_loop's. Unsynchronised ground cameras and partly occluded
+landmarks are measured here too; the rest of the profile (latency, wind,
 drift, calibration error) has its own tests (test_sim_world_node, test_mavlink_vehicle,
 test_calibration_error)."""
 import math
@@ -16,7 +16,7 @@ import pytest
 
 from conftest import REPO
 from uav_vs.nodes.sim_world_node import effects_config, ideal_lens
-from uav_vs.sim.camera_effects import CameraEffects, CameraLags
+from uav_vs.sim.camera_effects import CameraEffects, CameraLags, Occlusion
 from uav_vs.sim.ground_scene import GroundScene, figure_eight
 from uav_vs.sim.onboard_scene import OnboardScene, Trajectory, fly
 from uav_vs.sim.world import ground_image_velocity, point_image_velocity
@@ -143,3 +143,32 @@ def test_the_ground_station_copes_with_unsynchronised_cameras(ground_scenes):
     assert max(spreads) > 0.5 * lag                   # the cameras were apart
     assert len(errors) >= 58 and sync.dropped == 0, (len(errors), sync.dropped)
     assert rms(errors) < 0.02 and max(errors) < 0.06, (rms(errors), max(errors))
+
+
+def test_the_ground_station_copes_with_partly_occluded_landmarks(ground_scenes):
+    # The realistic profile's occluders (each landmark, camera and frame on its own),
+    # drawn over the exact render of a known flight; the station measures through them.
+    config, scene = ground_scenes[True]
+    occlusion = Occlusion(REALISTIC['occlusion.probability'], REALISTIC['occlusion.fraction'],
+                          np.random.default_rng(14))
+    detectors = [LandmarkDetector(models_from_params(GROUND)) for _ in config.cameras]
+    rate, errors, yaw_errors, occluded = 15.0, [], [], 0
+    for k in range(60):
+        pose = figure_eight(k / rate)
+        images, info = scene.render(pose)
+        discs = scene.landmark_discs(pose)      # where the occluders go: the rendered spheres
+        assert np.nanmax(np.linalg.norm(discs[..., :2] - info.full_centroid, axis=2)) < 0.1
+        pixels = []
+        for detector, image, camera_discs in zip(detectors, images, discs):
+            frame, count = occlusion(image, camera_discs)
+            occluded += count
+            pixels.append(centroids(detector.detect(frame))[0])
+        solved = solve_pose(config.layout, triangulate(config.cameras, np.stack(pixels)).points)
+        if solved.ok:
+            errors.append(np.linalg.norm(solved.position - pose.position))
+            yaw_errors.append(math.remainder(solved.yaw - pose.yaw, 2 * math.pi))
+    expected = REALISTIC['occlusion.probability'] * 60 * len(config.cameras) * len(config.layout)
+    assert occluded > 0.5 * expected, (occluded, expected)
+    assert len(errors) >= 0.9 * 60, len(errors)
+    assert rms(errors) < 0.02 and max(errors) < 0.06, (rms(errors), max(errors))
+    assert rms(yaw_errors) < math.radians(1.5), np.degrees(rms(yaw_errors))

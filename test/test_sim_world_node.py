@@ -8,6 +8,7 @@ import subprocess
 
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
@@ -126,6 +127,24 @@ def test_unsynchronised_cameras_stamp_their_own_capture(ros_node, processes):
     assert proc.poll() is None
 
 
+def test_occlusion_covers_every_landmark_it_is_told_to(ros_node, processes):
+    """With occlusion.probability 1 every landmark in front of every ground camera is
+    occluded in every frame set, and the diagnostics count them."""
+    proc = processes('sim_world', [*FILES, '-p', f'vehicle.connection:=tcpin:127.0.0.1:{free_port()}',
+                                   '-p', 'onboard.rate:=0.0', '-p', 'world.diagnostics_period:=0.2',
+                                   '-p', 'occlusion.enabled:=true',
+                                   '-p', 'occlusion.probability:=1.0'])
+    counts: list[dict] = []
+
+    def on_diagnostics(msg: DiagnosticArray) -> None:
+        counts.extend({kv.key: kv.value for kv in s.values} for s in msg.status
+                      if s.name == '/sim_world')
+    ros_node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
+    assert wait_for(lambda: counts and int(counts[-1]['ground_frames']) >= 10, 60), proc.poll()
+    last = counts[-1]
+    assert int(last['occluded_landmarks']) == 3 * 4 * int(last['ground_frames']), last
+
+
 @pytest.mark.parametrize('override, expected', [
     ('ground.background:=nope.jpg', 'ground.background: cannot read'),
     ('onboard.rate:=-1.0', 'onboard.rate: expected a number in [0, 60]'),
@@ -136,6 +155,7 @@ def test_unsynchronised_cameras_stamp_their_own_capture(ros_node, processes):
     ('calibration.angle_sigma:=2.0', 'calibration.angle_sigma: expected a number in [0, 0.5]'),
     ('wind.gust_sigma:=-0.1', 'wind.gust_sigma: expected a number in [0, 5]'),
     ('unsynchronised.lag:=0.5', 'unsynchronised.lag: expected a number in [0, 0.1]'),
+    ('occlusion.fraction:=1.5', 'occlusion.fraction: expected a number in [0, 1]'),
 ])
 def test_bad_parameter_stops_it_with_one_line(override, expected):
     run = subprocess.run([executable('sim_world'), '--ros-args', *FILES, '-p', override],

@@ -10,9 +10,9 @@ log (flight.npz), PNG plots and every node's log.
 
 The simulated world's cameras and vehicle have the `realistic` sensor profile
 (config/sensors_realistic.yaml: noise, distortion, motion blur, exposure drift, JPEG
-artefacts, dropped frames, latency, unsynchronised ground cameras, wind gusts, a
-drifting estimate); `make demo SENSORS=ideal` (`--sensors ideal`) switches every effect
-off but the calibrated lens.
+artefacts, dropped frames, latency, unsynchronised ground cameras, partly occluded
+landmarks, wind gusts, a drifting estimate); `make demo SENSORS=ideal` (`--sensors
+ideal`) switches every effect off but the calibrated lens.
 
 `make demo AUTOPILOT=ardupilot-sitl` (`--autopilot ardupilot-sitl`) flies the same mission
 with ArduCopter SITL as the vehicle (its physics, EKF and GUIDED controller) at real time:

@@ -19,7 +19,8 @@ recorder) and `camK/camera_info` for each ground camera, the same three under `o
 (not while the onboard camera is below `onboard.min_height`), `truth/pose`
 (PoseStamped, base_link in `world` ENU, for evaluation only) and /diagnostics.
 The camera effects of uav_vs.sim.camera_effects (noise, lens distortion, motion blur,
-exposure drift, JPEG artefacts, dropped frames, latency, unsynchronised ground cameras),
+exposure drift, JPEG artefacts, dropped frames, latency, unsynchronised ground cameras,
+landmarks partly occluded),
 calibration error (the cameras render from a rig a little off the calibration
 camera_info carries) and, for the builtin vehicle, wind gusts and the drift of its
 estimate are each switched by their own parameter group; by default only the noise and
@@ -45,7 +46,7 @@ from uav_vs.ros.ground_params import declare_cameras, declare_landmarks
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, run
 from uav_vs.ros.params import Param, T, declare
 from uav_vs.sim.calibration_error import CalibrationSpread, true_camera, true_mount
-from uav_vs.sim.camera_effects import CameraEffects, CameraLags, EffectsConfig, Latency
+from uav_vs.sim.camera_effects import CameraEffects, CameraLags, EffectsConfig, Latency, Occlusion
 from uav_vs.sim.delay_line import DelayLine
 from uav_vs.sim.ground_scene import GroundScene
 from uav_vs.sim.mavlink_vehicle import CUSTOM_MODES, MavlinkVehicle, VehicleConfig
@@ -143,6 +144,11 @@ PARAMS = [
           'behind the first, s (each drawn once in [0, lag])', 0.0, 0.1),
     Param('unsynchronised.jitter', T.DOUBLE, 0.001, 'per-frame jitter added to each lag, s '
           '(uniform in [0, jitter])', 0.0, 0.1),
+    Param('occlusion.enabled', T.BOOL, False, 'landmarks partly hidden at random by a dark '
+          'object between them and a ground camera'),
+    Param('occlusion.probability', T.DOUBLE, 0.05, 'probability per landmark, camera and frame',
+          0.0, 1.0),
+    Param('occlusion.fraction', T.DOUBLE, 0.3, "fraction of the landmark's disc hidden", 0.0, 1.0),
 ]
 
 
@@ -219,7 +225,7 @@ class SimWorldNode(Node):
             raise ValueError(f'ground.background: {err}') from None
         onboard_scene = OnboardScene(onboard.camera, onboard.camera_to_body, noise_sigma=0.0)
         n = len(ground.cameras)
-        seeds = np.random.SeedSequence(p['world.seed']).spawn(n + 4)
+        seeds = np.random.SeedSequence(p['world.seed']).spawn(n + 5)
         self.ground_effects = [
             CameraEffects(effects_config(p, p['ground.noise_sigma']), (c.height, c.width), s)
             for c, s in zip(ground.cameras, seeds)]
@@ -230,6 +236,10 @@ class SimWorldNode(Node):
         if p['unsynchronised.enabled']:
             self.lags = CameraLags(n, p['unsynchronised.lag'], p['unsynchronised.jitter'],
                                    np.random.default_rng(seeds[n + 3]))
+        self.occlusion = None
+        if p['occlusion.enabled']:
+            self.occlusion = Occlusion(p['occlusion.probability'], p['occlusion.fraction'],
+                                       np.random.default_rng(seeds[n + 4]))
         if p['latency.jitter'] > p['latency.mean']:
             raise ValueError(f"latency.jitter: {p['latency.jitter']:g} s is more than "
                              f"latency.mean {p['latency.mean']:g} s")
@@ -250,7 +260,7 @@ class SimWorldNode(Node):
         self.onboard_camera = CameraOutput(self, 'onboard', nominal_onboard.camera, quality)
         self.truth_pub = self.create_publisher(PoseStamped, 'truth/pose', 50)
         self.counts = dict(ground_frames=0, onboard_frames=0, onboard_too_low=0,
-                           dropped_frames=0)
+                           dropped_frames=0, occluded_landmarks=0)
         self.render_ms = dict(ground_render_ms=float('nan'), onboard_render_ms=float('nan'))
         if p['ground.rate'] > 0:
             self.create_timer(1.0 / p['ground.rate'], self.on_ground)
@@ -305,6 +315,11 @@ class SimWorldNode(Node):
             self.counts['dropped_frames'] += 1
         return frame
 
+    def _occlude(self, image: np.ndarray, discs: np.ndarray) -> np.ndarray:
+        image, count = self.occlusion(image, discs)
+        self.counts['occluded_landmarks'] += count
+        return image
+
     def _deliver(self, which: str, header: Header, publish: Callable[[], None]) -> None:
         """Publish now, or with latency on, once the frame's delay after its stamp is over."""
         if self.latency is None:
@@ -320,6 +335,9 @@ class SimWorldNode(Node):
         start = time.perf_counter()
         lags = None if self.lags is None else self.lags.sample()
         images = self.world.ground_images(state, lags)
+        if self.occlusion is not None:
+            images = [self._occlude(image, discs) for image, discs in
+                      zip(images, self.world.ground_landmark_discs(state, lags))]
         velocities = self.world.ground_image_velocities(state)
         frames = [self._capture(fx, image, v, 'ground')
                   for fx, image, v in zip(self.ground_effects, images, velocities)]

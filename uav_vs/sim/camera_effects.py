@@ -14,7 +14,9 @@ its own:
 - `FrameDrops`: frames lost with a probability;
 - `Latency`: the capture-to-publication delay, so the stamp is earlier than publication;
 - `CameraLags`: ground cameras not triggered together, each capturing a little after
-  the first.
+  the first;
+- `Occlusion`: something passing between a ground camera and a landmark, covering part
+  of it.
 
 `CameraEffects` chains the image effects in the order light meets them: motion blur
 (during the exposure), exposure gain, sensor noise, JPEG (the link).
@@ -198,6 +200,51 @@ class CameraLags:
         e = self.jitter * self._rng.random(len(self.lags))
         e[0] = 0.0
         return self.lags + e
+
+
+def cap_offset(fraction: float) -> float:
+    """Distance from a unit disc's centre of the chord that cuts off `fraction` of its
+    area (the cap beyond it): the root of (acos d - d sqrt(1 - d^2)) / pi = fraction."""
+    d = np.linspace(-1.0, 1.0, 2001)
+    cap = (np.arccos(d) - d * np.sqrt(1.0 - d * d)) / np.pi     # decreasing in d
+    return float(np.interp(fraction, cap[::-1], d[::-1]))
+
+
+class Occlusion:
+    """Something between a camera and the vehicle (a cable, a pole, a passing hand): each
+    landmark, on its own with `probability` per frame, has a dark straight-edged object
+    laid over `fraction` of its disc from a random side. The image the camera sees is
+    the scene's with the occluder in front, so it is drawn before every other effect."""
+
+    COLOUR = (38, 40, 42)        # BGR: a dark, unsaturated object
+
+    def __init__(self, probability: float, fraction: float, rng: np.random.Generator) -> None:
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f'fraction {fraction:g} must be in [0, 1]')
+        self.probability = probability
+        self.offset = cap_offset(fraction)
+        self._rng = rng
+
+    def __call__(self, image: np.ndarray, discs: np.ndarray) -> tuple[np.ndarray, int]:
+        """`image` with the occluders of this frame drawn over the landmarks' discs
+        ((n, 3): centre u, v and radius in px, NaN where not in view), and how many."""
+        out, count = image, 0
+        for u, v, r in discs:
+            if not (np.isfinite(r) and r > 0) or self._rng.random() >= self.probability:
+                continue
+            angle = self._rng.uniform(0.0, 2 * np.pi)
+            n = np.array([np.cos(angle), np.sin(angle)])       # towards the object
+            t = np.array([-n[1], n[0]])                         # along its edge
+            c, far = np.array([u, v]), 2.0 * r + 2.0
+            near = self.offset * r       # the object's edge: the chord cutting off the fraction
+            corners = [c + n * near - t * far, c + n * near + t * far,
+                       c + n * far + t * far, c + n * far - t * far]
+            if out is image:
+                out = image.copy()
+            cv2.fillConvexPoly(out, np.round(np.array(corners) * 16).astype(np.int32),
+                               self.COLOUR, cv2.LINE_AA, shift=4)
+            count += 1
+        return out, count
 
 
 @dataclass(frozen=True)

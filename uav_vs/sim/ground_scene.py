@@ -155,6 +155,20 @@ class GroundScene:
             images.append(self._noise(img))
         return images, info
 
+    def landmark_discs(self, pose: Pose | Sequence[Pose]) -> np.ndarray:
+        """(n_cams, n_landmarks, 3): each landmark's image centre (u, v) and radius (px,
+        from the focal length over its depth) in each camera at `pose` (or at each
+        camera's own pose); NaN behind a camera."""
+        poses = [pose] * len(self.cameras) if isinstance(pose, Pose) else list(pose)
+        out = np.full((len(self.cameras), self.n_landmarks, 3), np.nan)
+        for k, (cam, at) in enumerate(zip(self.cameras, poses)):
+            centres = self._centres[:self.n_landmarks] @ at.R.T + at.position
+            depth = cam.to_camera(centres)[:, 2]
+            ahead = depth > 0
+            out[k, ahead, :2] = cam.project(centres[ahead])
+            out[k, ahead, 2] = cam.K[0, 0] * self._axes[:self.n_landmarks, 0][ahead] / depth[ahead]
+        return out
+
     def _draw_vehicle(self, k: int, img: np.ndarray, pose: Pose, gain: float, sun: np.ndarray,
                       info: RenderInfo) -> None:
         """Ray-cast every part inside the vehicle's image window and composite the two

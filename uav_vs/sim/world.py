@@ -106,18 +106,27 @@ class SimWorld:
     def state(self) -> VehicleState:
         return self.vehicle.state()
 
-    def ground_images(self, state: VehicleState, lags: np.ndarray | None = None
-                      ) -> list[np.ndarray]:
-        """One BGR image per ground camera, in `cameras.names` order (section 3); with
-        `lags`, camera k captures lags[k] s after `state` (moved on by its velocity, its
-        attitude kept: lags are milliseconds)."""
+    def ground_poses(self, state: VehicleState, lags: np.ndarray | None = None
+                     ) -> Pose | list[Pose]:
+        """The vehicle's pose each ground camera sees: `state`'s; with `lags`, camera k's
+        lags[k] s later (moved on by its velocity, its attitude kept: lags are ms)."""
         t = state.time - self._t0
         if lags is None:
-            images, _ = self.ground.render(Pose(t, state.position, state.yaw, state.R))
-        else:
-            images, _ = self.ground.render([Pose(t + dt, state.position + dt * state.velocity,
-                                                 state.yaw, state.R) for dt in lags])
+            return Pose(t, state.position, state.yaw, state.R)
+        return [Pose(t + dt, state.position + dt * state.velocity, state.yaw, state.R)
+                for dt in lags]
+
+    def ground_images(self, state: VehicleState, lags: np.ndarray | None = None
+                      ) -> list[np.ndarray]:
+        """One BGR image per ground camera, in `cameras.names` order (section 3), each
+        at its `ground_poses`."""
+        images, _ = self.ground.render(self.ground_poses(state, lags))
         return images
+
+    def ground_landmark_discs(self, state: VehicleState, lags: np.ndarray | None = None
+                              ) -> np.ndarray:
+        """Each landmark's image disc in each ground camera (GroundScene.landmark_discs)."""
+        return self.ground.landmark_discs(self.ground_poses(state, lags))
 
     def ground_image_velocities(self, state: VehicleState) -> list[np.ndarray]:
         """Image-plane velocity (px/s) of the vehicle in each ground camera."""
