@@ -70,7 +70,7 @@ bench: $(STAMP)
 	$(BIN)/python -m bench
 
 demo: $(STAMP)
-	$(BIN)/python -m uav_vs.demo $(if $(BAG),--bag $(BAG)) $(if $(AUTOPILOT),--autopilot $(AUTOPILOT)) $(if $(SITL),--sitl $(SITL)) $(if $(SENSORS),--sensors $(SENSORS))
+	$(BIN)/python -m uav_vs.demo $(if $(BAG),--bag $(BAG)) $(if $(AUTOPILOT),--autopilot $(AUTOPILOT)) $(if $(SITL),--sitl $(SITL)) $(if $(SENSORS),--sensors $(SENSORS)) $(if $(SCENARIO),--scenario $(SCENARIO))
 
 clean:
 	rm -rf $(VENV) $(UBUNTU_VENV) build install log *.egg-info bench-results.jsonl demo-output

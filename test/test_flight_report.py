@@ -80,6 +80,30 @@ def test_save_and_load_keep_everything(tmp_path):
     assert FlightReport.from_log(back) == FlightReport.from_log(log)
 
 
+def test_the_ekf_reports_of_the_flight_are_summed_up_and_kept(tmp_path):
+    """Only the reports from the takeoff command to landed count; one without an absolute
+    horizontal position is a fallback."""
+    log = make_log()
+    start, end = log.takeoff_ns, log.takeoff_ns + 5 * 10**9
+    log.landed_ns = end
+    row = lambda t, flags, posh, nav: [t, flags, 0.1, posh, 0.05, nav, 0]   # noqa: E731
+    log.ekf = [row(start - 10**9, 0xa5, 0.0, 0),                  # before takeoff: ignored
+               row(start + 10**9, 0x33f, 0.2, 1), row(start + 3 * 10**9, 0x33f, 0.4, 1),
+               row(end + 10**9, 0xa5, 5.0, 0)]                   # after landing: ignored
+    ekf = FlightReport.from_log(log).ekf
+    assert (ekf.reports, ekf.flags, ekf.navigating) == (2, (0x33f,), True)
+    assert (ekf.velocity_ratio_max, ekf.pos_horiz_ratio_max, ekf.gps_fix_max) == (0.1, 0.4, 0)
+    assert ('autopilot EKF over the flight: 2 reports, flags 0x33f, navigating in every '
+            'report; largest test ratios velocity 0.10, position 0.40, height 0.05 (gate 1); '
+            'no GPS fix') in FlightReport.from_log(log).summary()
+    log.ekf.insert(2, row(start + 2 * 10**9, 0xa7, 0.3, 0))       # constant position mode
+    ekf = FlightReport.from_log(log).ekf
+    assert ekf.flags == (0x33f, 0xa7) and not ekf.navigating
+    log.save(tmp_path / 'flight.npz')
+    assert FlightLog.load(tmp_path / 'flight.npz').ekf == log.ekf
+    assert FlightReport.from_log(make_log()).ekf is None             # PX4: no reports
+
+
 def test_a_process_that_failed_is_reported_with_the_end_of_its_log(tmp_path):
     procs = {'ok': graph.start('python', [], tmp_path, 'ok', args=['-c', 'print("fine")']),
              'bad': graph.start('python', [], tmp_path, 'bad', args=[

@@ -487,6 +487,8 @@ def test_signing_rejects_unsigned_traffic_both_ways_and_installs_the_key(ros_nod
     ('connection:=udpin:0.0.0.0:port', "connection: expected udpin:HOST:PORT with a port"),
     ('connection:=serial0', "connection: expected udp:, udpin:, udpout:, udpbcast:, tcp:, "
                             "tcpin: followed by HOST:PORT, or a serial device"),
+    ('ekf_origin:=[-35.36, 149.17]', 'ekf_origin: expected [latitude, longitude, altitude] or []'),
+    ('ekf_origin:=[-35.36, 149.17, 584.0]', 'ekf_origin: set without vision_pose_topic'),
 ])
 def test_bad_parameter_stops_the_node_with_one_fatal_line(tmp_path, override, expected):
     doc = yaml.safe_load(CONFIG.read_text())

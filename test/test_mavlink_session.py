@@ -358,6 +358,8 @@ class ReadinessEndpoint:
         self.port = self.conn.port.getsockname()[1]
         self.autopilot, self.requested, self.next_send = autopilot, set(), 0.0
         self.prearm, self.ekf_flags, self.gps_fix = False, None, None   # None: never sent
+        self.origins: list[tuple[int, int, int]] = []    # SET_GPS_GLOBAL_ORIGIN received
+        self.answer_origin = False      # answer them with GPS_GLOBAL_ORIGIN
 
     def pump(self, until, timeout=5.0):
         end = time.monotonic() + timeout
@@ -376,8 +378,16 @@ class ReadinessEndpoint:
                     self.conn.mav.ekf_status_report_send(self.ekf_flags, 0, 0, 0, 0, 0)
                 if self.gps_fix is not None and mavlink.MAVLINK_MSG_ID_GPS_RAW_INT in self.requested:
                     self.conn.mav.gps_raw_int_send(0, self.gps_fix, 0, 0, 0, 0, 0, 0, 0, 0)
-            msg = self.conn.recv_match(type='COMMAND_LONG', blocking=True, timeout=0.01)
-            if msg is not None and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            msg = self.conn.recv_match(type=['COMMAND_LONG', 'SET_GPS_GLOBAL_ORIGIN'],
+                                       blocking=True, timeout=0.01)
+            if msg is None:
+                continue
+            if msg.get_type() == 'SET_GPS_GLOBAL_ORIGIN':
+                self.origins.append((msg.latitude, msg.longitude, msg.altitude))
+                if self.answer_origin:
+                    self.conn.mav.gps_global_origin_send(msg.latitude, msg.longitude,
+                                                         msg.altitude, msg.time_usec)
+            elif msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
                 self.requested.add(int(msg.param1))
 
 
@@ -403,6 +413,36 @@ def test_ardupilot_is_ready_to_arm_only_with_prearm_bit_ekf_flags_and_3d_fix():
                 mavlink.MAVLINK_MSG_ID_SYS_STATUS} <= ap.requested
         assert mavlink.MAVLINK_MSG_ID_ODOMETRY not in ap.requested      # ArduPilot sends none
     ap.conn.close()
+
+
+def test_without_gps_the_origin_is_sent_until_answered_and_stands_in_for_the_gps_fix():
+    """ArduPilot on external navigation: no GPS fix ever, but no arming before the EKF
+    has taken an origin (an EKF still starting ignores one: it is sent again)."""
+    ap = ReadinessEndpoint(mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+    ap.prearm, ap.ekf_flags, ap.gps_fix = True, 0x33F, mavlink.GPS_FIX_TYPE_NO_GPS
+    config = SessionConfig(connection=f'udpout:127.0.0.1:{ap.port}',
+                           ekf_origin=(-35.363261, 149.16523, 584.0))
+    with Session(config) as session:
+        ap.pump(lambda: len(ap.origins) >= 2, timeout=5.0)
+        status = session.status()
+        assert status.prearm_reasons == (
+            'EKF origin not set yet (SET_GPS_GLOBAL_ORIGIN unanswered)',)
+        assert status.ekf_origin_set is False and status.ekf.flags == 0x33F
+        assert status.ekf.navigating
+        assert ap.origins[-1] == (-353632610, 1491652300, 584000)   # 1e-7 deg, mm
+        ap.answer_origin = True
+        ap.pump(lambda: session.status().prearm_ok, timeout=5.0)
+        assert session.status().ekf_origin_set is True
+        answered = len(ap.origins)
+        later = time.monotonic() + 2.5
+        ap.pump(lambda: time.monotonic() > later)
+        assert len(ap.origins) == answered            # no more once taken
+    ap.conn.close()
+
+
+def test_an_ekf_origin_off_the_earth_is_refused():
+    with pytest.raises(ValueError, match='ekf_origin must be latitude'):
+        Session(SessionConfig(connection='udpout:127.0.0.1:14550', ekf_origin=(95.0, 0.0, 0.0)))
 
 
 def test_px4_readiness_is_its_prearm_bit_and_no_ekf_status_report_is_requested():

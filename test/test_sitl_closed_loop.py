@@ -4,7 +4,10 @@
 in a loopback-only network namespace, the whole graph joins it, and the mission flies
 with ArduPilot's physics, EKF3 and GUIDED controller: take off, hold on the ground
 station's pose, land on the pad on the onboard pose. Truth is SITL's own physics state
-(SIM_STATE), which no node of the loop reads.
+(SIM_STATE), which no node of the loop reads. `--scenario gps_denied` flies it without
+GPS, its EKF3 on the ground station's pose alone.
+
+Both flights are in this module so that they run one after the other (`--dist loadscope`).
 """
 import os
 import subprocess
@@ -18,19 +21,29 @@ from uav_vs.flight.report import FlightLog, FlightReport
 SCENARIO = 'land_on_pad'     # hold at (0, 0, 1.5) m, land on the pad at (0.8, -0.5) m
 
 
-@pytest.fixture(scope='module')
-def flight(tmp_path_factory) -> tuple[FlightLog, str]:
+def fly_sitl(scenario: str, out) -> tuple[FlightLog, str]:
+    """`python -m uav_vs.demo --autopilot ardupilot-sitl --scenario <scenario>`: its log
+    and output."""
     binary = sitl_dir() / 'ardupilot' / 'arducopter'
     if os.geteuid() != 0:
         pytest.skip('SITL runs in a network namespace of its own, which needs root')
-    out = tmp_path_factory.mktemp('sitl_flight')
     run = subprocess.run([sys.executable, '-m', 'uav_vs.demo', '--autopilot', 'ardupilot-sitl',
-                          '--scenario', SCENARIO, '--out', str(out)],
+                          '--scenario', scenario, '--out', str(out)],
                          env={**os.environ, 'UAV_VS_ARDUPILOT_SITL': str(binary)},
                          capture_output=True, text=True, timeout=300, cwd=REPO)
     print(run.stdout)
     assert (out / 'flight.npz').exists(), f'{run.stdout[-3000:]}\n{run.stderr[-3000:]}'
     return FlightLog.load(out / 'flight.npz'), run.stdout
+
+
+@pytest.fixture(scope='module')
+def flight(tmp_path_factory) -> tuple[FlightLog, str]:
+    return fly_sitl(SCENARIO, tmp_path_factory.mktemp('sitl_flight'))
+
+
+@pytest.fixture(scope='module')
+def gps_denied_flight(tmp_path_factory) -> tuple[FlightLog, str]:
+    return fly_sitl('gps_denied', tmp_path_factory.mktemp('sitl_gps_denied'))
 
 
 def test_the_mission_flies_arducopter_sitl_by_vision(flight):
@@ -64,3 +77,33 @@ def test_vision_poses_match_the_sitl_physics(flight):
     # The autopilot's own estimate (EKF3 on its GPS and IMU) is the third opinion.
     odom = report.sources['odom']
     assert odom.samples > 50 and odom.position_rmse_m <= 0.5, odom
+
+
+def test_without_gps_arducopter_flies_on_the_ground_stations_pose(gps_denied_flight):
+    """GPS off (config/ardupilot_gps_denied.parm), EKF3 on the relay's
+    VISION_POSITION_ESTIMATE from ground/pose: arm, take off, hold and land by vision
+    alone, the EKF navigating in every report of the flight."""
+    log, stdout = gps_denied_flight
+    report = FlightReport.from_log(log)
+    assert log.failure == '', log.failure
+    assert [e.source for e in log.setpoints] == ['ground']
+    hold = report.setpoints[0]
+    assert hold.reached and hold.error_rms_m <= 0.15, hold
+    assert log.landed_ns is not None and report.duration_s > 0
+    ekf = report.ekf
+    assert ekf is not None and ekf.reports >= 10, ekf
+    assert ekf.navigating and ekf.gps_fix_max < 2, ekf     # never the fallback, never a GPS fix
+    assert ekf.pos_horiz_ratio_max < 1.0 and ekf.pos_vert_ratio_max < 1.0, ekf
+    # The autopilot's estimate is now the vision pose fused with its IMU: near the truth.
+    odom = report.sources['odom']
+    assert odom.samples > 50 and odom.position_rmse_m <= 0.15, odom
+    assert 'autopilot EKF over the flight' in stdout
+    assert not any(log.exit_codes.values()), (log.exit_codes, log.failed_logs)
+
+
+def test_without_gps_the_demo_refuses_a_vehicle_without_an_ekf(capsys):
+    from uav_vs import demo
+    with pytest.raises(SystemExit) as stop:
+        demo.main(['--scenario', 'gps_denied', '--autopilot', 'ardupilot'])
+    assert stop.value.code == 2
+    assert '--scenario gps_denied needs --autopilot ardupilot-sitl' in capsys.readouterr().err

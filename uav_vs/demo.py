@@ -20,6 +20,10 @@ run as root, it starts the SITL binary (uav_vs.sim.sitl_process) in a loopback-o
 network namespace that the whole graph joins; `SITL=tcp:HOST:PORT` (`--sitl`) attaches
 to a SITL already running instead (the relay on that port, the truth on `--sitl-truth`,
 by default the same host's next SERIAL port, PORT + 2).
+`SCENARIO=gps_denied` (`--scenario gps_denied`, ArduPilot SITL only) flies without GPS:
+SITL gets config/ardupilot_gps_denied.parm (an attached SITL must run with it), EKF3
+navigates on the ground station's pose, which the relay forwards with the EKF origin;
+the summary adds what the EKF reported over the flight.
 
 `make demo BAG=<bag>` (`--bag`) replays a bag instead (the flight bag a closed-loop run
 records into the output folder, or bags/ground_trinocular, bags/onboard) through the
@@ -36,7 +40,7 @@ from uav_vs.flight.plots import plot_flight
 from uav_vs.flight.recorder import MissionError
 from uav_vs.flight.replay import replay_flight
 from uav_vs.flight.report import FlightLog, FlightReport
-from uav_vs.flight.scenario import SCENARIOS, Configs, SitlLink, fly
+from uav_vs.flight.scenario import GPS_DENIED_PARAMS, SCENARIOS, Configs, SitlLink, fly
 from uav_vs.sim.sitl_process import (HOW_TO_GET, ArduCopterSitl, delete_namespace,
                                      enter_loopback_namespace, find_binary)
 from uav_vs.vision.ground_config import default_config_path
@@ -75,7 +79,10 @@ def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
 def sitl_closed_loop(scenario_name: str, out: Path, sensors: str, attach: str | None,
                      truth: str | None) -> int:
     """The closed loop on ArduCopter SITL: attached to `attach`, or started here."""
+    gps_denied = SCENARIOS[scenario_name].gps_denied
     if attach:
+        if gps_denied:
+            print(f'the SITL at {attach} must run with {GPS_DENIED_PARAMS}', flush=True)
         return closed_loop(scenario_name, out, 'ardupilot', sensors,
                            SitlLink(attach, truth or next_serial_port(attach)))
     binary = find_binary()
@@ -89,7 +96,8 @@ def sitl_closed_loop(scenario_name: str, out: Path, sensors: str, attach: str | 
         print(f'cannot start SITL: {err}', file=sys.stderr)
         return 2
     try:
-        with ArduCopterSitl(binary, out / 'sitl') as sitl:
+        extra = (GPS_DENIED_PARAMS,) if gps_denied else ()
+        with ArduCopterSitl(binary, out / 'sitl', extra_params=extra) as sitl:
             relay, serial1, _ = sitl.serial_ports
             print(f'ArduCopter SITL {binary} started in network namespace {namespace} '
                   f'(log {sitl.log_path})', flush=True)
@@ -149,6 +157,9 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if args.bag is not None:
         return replay(args.bag, out, args.rate)
+    if SCENARIOS[args.scenario].gps_denied and args.autopilot != 'ardupilot-sitl':
+        parser.error(f'--scenario {args.scenario} needs --autopilot ardupilot-sitl (an EKF '
+                     'that navigates on the vision pose)')
     if args.autopilot == 'ardupilot-sitl':
         return sitl_closed_loop(args.scenario, out, args.sensors, args.sitl, args.sitl_truth)
     return closed_loop(args.scenario, out, args.autopilot, args.sensors)

@@ -150,6 +150,27 @@ class SessionConfig:
     limits: Limits = Limits()
     signing_key_file: str | None = None     # MAVLink 2 signing (see link.load_signing_key)
     signing_required: bool = True           # reject unsigned incoming messages
+    # Flight without GPS, on external navigation (send_vision_pose): the EKF origin (latitude
+    # and longitude [deg], altitude AMSL [m]) sent as SET_GPS_GLOBAL_ORIGIN until the
+    # autopilot answers with GPS_GLOBAL_ORIGIN; readiness then needs that answer, no GPS fix.
+    ekf_origin: tuple[float, float, float] | None = None
+
+
+@dataclass(frozen=True)
+class EkfStatus:
+    """ArduPilot's EKF_STATUS_REPORT: its flags (EKF_STATUS_FLAGS) and innovation test
+    ratios (the fields named *_variance: 1 is the gate, above it a measurement is refused)."""
+    flags: int
+    velocity: float
+    pos_horiz: float
+    pos_vert: float
+    compass: float
+
+    @property
+    def navigating(self) -> bool:
+        """An absolute horizontal position, not the constant-position fallback."""
+        return bool(self.flags & mavlink.EKF_POS_HORIZ_ABS) and not (
+            self.flags & mavlink.EKF_CONST_POS_MODE)
 
 
 @dataclass(frozen=True)
@@ -194,15 +215,20 @@ class Status:
     held: int                        # commands that waited for a send token (max_send_rate)
     coalesced: int                   # of those, replaced by a newer one before they were sent
     link_reason: str                 # why the connection cannot be opened ('' when it is open)
+    ekf: EkfStatus | None            # the latest EKF_STATUS_REPORT (ArduPilot), None before one
+    gps_fix: int | None              # GPS_RAW_INT fix_type (ArduPilot), None before one
+    ekf_origin_set: bool | None      # with ekf_origin: GPS_GLOBAL_ORIGIN heard; else None
 
 
 def prearm_reasons(autopilot: str | None, prearm_bit: bool | None, ekf_flags: int | None,
-                   gps_fix: int | None) -> list[str]:
+                   gps_fix: int | None, origin_set: bool | None = None) -> list[str]:
     """Why the autopilot is not ready to arm, one entry per check (empty: ready).
 
     None means not reported yet. ArduPilot Copter arms only with the SYS_STATUS pre-arm
     check bit healthy, EKF_STATUS_REPORT flags 0x10 and 0x200 (absolute horizontal
-    position, now and predicted) and a GPS fix >= 3, so all three are checked. PX4 has no
+    position, now and predicted) and a GPS fix >= 3, so all three are checked. Without GPS
+    (`origin_set` not None: SessionConfig.ekf_origin) the GPS fix is not needed but the EKF
+    origin is: without one it refuses to arm in GUIDED ("waiting for home"). PX4 has no
     EKF_STATUS_REPORT and folds its estimator and GPS checks (GPS is optional there, e.g.
     with vision) into the pre-arm bit: that bit alone decides, as for other autopilots.
     """
@@ -219,7 +245,10 @@ def prearm_reasons(autopilot: str | None, prearm_bit: bool | None, ekf_flags: in
         lacking = ', '.join(_enum_name('EKF_STATUS_FLAGS', bit) for bit in
                             (mavlink.EKF_POS_HORIZ_ABS, mavlink.EKF_PRED_POS_HORIZ_ABS) if missing & bit)
         reasons.append(f'EKF_STATUS_REPORT flags 0x{ekf_flags:x} lack {lacking}')
-    if gps_fix is None:
+    if origin_set is not None:
+        if not origin_set:
+            reasons.append('EKF origin not set yet (SET_GPS_GLOBAL_ORIGIN unanswered)')
+    elif gps_fix is None:
         reasons.append('no GPS_RAW_INT yet')
     elif gps_fix < GPS_READY_FIX:
         reasons.append(f'GPS fix {_enum_name("GPS_FIX_TYPE", gps_fix)}, needs 3D')
@@ -316,6 +345,11 @@ def _check_config(config: SessionConfig) -> None:
     if not config.max_send_rate >= config.stream_rate:
         raise ValueError(f'max_send_rate must be at least stream_rate ({config.stream_rate} Hz), '
                          f'got {config.max_send_rate}')
+    if config.ekf_origin is not None:
+        lat, lon, alt = config.ekf_origin
+        if not (abs(lat) <= 90.0 and abs(lon) <= 180.0 and -500.0 <= alt <= 10000.0):
+            raise ValueError('ekf_origin must be latitude [-90, 90], longitude [-180, 180] deg '
+                             f'and altitude [-500, 10000] m, got {config.ekf_origin}')
 
 
 class Session:
@@ -342,6 +376,9 @@ class Session:
         self._mav_type = None
         self._armed = False
         self._prearm_bit = self._ekf_flags = self._gps_fix = self._battery = None
+        self._ekf: EkfStatus | None = None
+        self._origin_set = False
+        self._next_origin = 0.0
         self._last_hb = None
         self._vehicle_signs = False        # the last HEARTBEAT carried a signature
         self._heartbeat_verified = False   # ... made with our key
@@ -368,7 +405,8 @@ class Session:
             'STATUSTEXT': self._on_statustext, 'LOCAL_POSITION_NED': self._on_local_position,
             'ATTITUDE': self._on_attitude, 'GLOBAL_POSITION_INT': self._on_global_position,
             'SYS_STATUS': self._on_sys_status, 'EKF_STATUS_REPORT': self._on_ekf_status,
-            'GPS_RAW_INT': self._on_gps_raw, 'ODOMETRY': self._on_odometry}
+            'GPS_RAW_INT': self._on_gps_raw, 'ODOMETRY': self._on_odometry,
+            'GPS_GLOBAL_ORIGIN': self._on_gps_global_origin}
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> 'Session':
@@ -410,8 +448,9 @@ class Session:
         with self._cond:
             now = time.monotonic()
             known = self._autopilot is not None
+            origin = self._origin_set if self.config.ekf_origin is not None else None
             reasons = tuple(prearm_reasons(self._autopilot, self._prearm_bit, self._ekf_flags,
-                                           self._gps_fix)) if known else ()
+                                           self._gps_fix, origin)) if known else ()
             return Status(
                 link=self._link, autopilot=self._autopilot, vehicle_type=self._vehicle_type,
                 system_id=self._target[0] if self._target else None, mode=self._mode,
@@ -425,7 +464,8 @@ class Session:
                 rejected_old_timestamp=self._rejected[OLD_TIMESTAMP],
                 signing_problem=self._signing_problem(now),
                 statustext=tuple(text for _, text in self._texts), held=self._held, coalesced=self._coalesced,
-                link_reason=self._open_error if self._conn is None else '')
+                link_reason=self._open_error if self._conn is None else '',
+                ekf=self._ekf, gps_fix=self._gps_fix, ekf_origin_set=origin)
 
     def telemetry(self) -> Telemetry:
         with self._cond:
@@ -818,6 +858,8 @@ class Session:
             return
         if now >= self._next_stream_check:
             self._request_streams(now)
+        if self.config.ekf_origin is not None and not self._origin_set and now >= self._next_origin:
+            self._send_origin(now)
         state = self._command_state
         if state is CommandState.ACTIVE and now - self._last_command > self.config.command_timeout:
             self._command_state = state = CommandState.HOVER
@@ -836,7 +878,17 @@ class Session:
         self._acks.clear()
         self._last_hb = None
         self._prearm_bit = self._ekf_flags = self._gps_fix = None   # re-read: it may have rebooted
+        self._ekf, self._origin_set = None, False
         self._cond.notify_all()
+
+    def _send_origin(self, now: float) -> None:
+        """SET_GPS_GLOBAL_ORIGIN (1e-7 deg, mm), once a second until GPS_GLOBAL_ORIGIN comes:
+        an EKF still starting ignores it."""
+        lat, lon, alt = self.config.ekf_origin
+        self._conn.mav.set_gps_global_origin_send(self._target[0], round(lat * 1e7),
+                                                  round(lon * 1e7), round(alt * 1e3),
+                                                  int(time.time() * 1e6))
+        self._next_origin = now + 1.0
 
     def _request_streams(self, now: float) -> None:
         """SET_MESSAGE_INTERVAL for every wanted message not seen lately (per link, lost on reboot)."""
@@ -961,6 +1013,14 @@ class Session:
 
     def _on_ekf_status(self, msg) -> None:
         self._ekf_flags = msg.flags
+        self._ekf = EkfStatus(msg.flags, msg.velocity_variance, msg.pos_horiz_variance,
+                              msg.pos_vert_variance, msg.compass_variance)
+
+    def _on_gps_global_origin(self, msg) -> None:
+        if self.config.ekf_origin is not None and not self._origin_set:
+            log.info('EKF origin set: %.7f, %.7f, %.2f m', msg.latitude * 1e-7,
+                     msg.longitude * 1e-7, msg.altitude * 1e-3)
+        self._origin_set = True
 
     def _on_gps_raw(self, msg) -> None:
         self._gps_fix = msg.fix_type

@@ -43,6 +43,7 @@ class FlightRecorder:
                                                       'onboard_frames')}
         self.latest: dict[str, tuple[int, np.ndarray, float]] = {}
         self.relay: dict[str, str] = {}
+        self.ekf: list[list[float]] = []        # FlightLog.ekf
         self.reporting: set[str] = set()        # nodes heard on /diagnostics
         node = self.node
         for name, topic in (('truth', 'truth/pose'), ('ground', 'ground/pose'),
@@ -96,6 +97,8 @@ class FlightRecorder:
             self.reporting.add(status.name)
             if status.name == RELAY:
                 self.relay = {kv.key: kv.value for kv in status.values}
+                if self.relay.get('ekf_flags'):
+                    self.ekf.append(ekf_row(self.relay))
 
     def set_setpoint(self, position: tuple[float, float, float], yaw: float) -> None:
         msg = PoseStamped(header=Header(stamp=self.node.get_clock().now().to_msg(),
@@ -152,4 +155,13 @@ class FlightRecorder:
                                           ('truth', 'ground', 'onboard', 'odom')),
                          CommandTrack.from_rows(rows['commands']),
                          np.array(rows['ground_frames'], np.int64),
-                         np.array(rows['onboard_frames'], np.int64), **events)
+                         np.array(rows['onboard_frames'], np.int64), ekf=list(self.ekf),
+                         **events)
+
+
+def ekf_row(relay: dict[str, str]) -> list[float]:
+    """One FlightLog.ekf row from the relay's diagnostics values, received now."""
+    fix = relay.get('gps_fix', '')
+    return [time.time_ns(), int(relay['ekf_flags'], 16), float(relay['ekf_velocity_ratio']),
+            float(relay['ekf_pos_horiz_ratio']), float(relay['ekf_pos_vert_ratio']),
+            float(relay['ekf_navigating'] == 'True'), int(fix) if fix else -1]

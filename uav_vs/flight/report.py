@@ -106,6 +106,11 @@ class FlightLog:
     failure: str = ''                # why the mission stopped early; '' if it completed
     exit_codes: dict[str, int] = field(default_factory=dict)  # of every process, at the end
     failed_logs: dict[str, str] = field(default_factory=dict)  # log ends of those not 0
+    # The autopilot's EKF_STATUS_REPORT as the relay's diagnostics gave it, one row each:
+    # received (ns), flags, velocity / horizontal position / height test ratios, navigating
+    # (0 or 1: absolute horizontal position, not the constant-position fallback), GPS fix
+    # type (-1: none reported). Empty from an autopilot without the report (PX4).
+    ekf: list[list[float]] = field(default_factory=list)
 
     def save(self, path: Path) -> None:
         arrays = {f'{name}.{key}': value for name in ('truth', *SOURCES)
@@ -179,6 +184,19 @@ class CommandScore:
 
 
 @dataclass(frozen=True)
+class EkfScore:
+    """What the autopilot's EKF said over the flight (takeoff command to landed)."""
+
+    reports: int
+    flags: tuple[int, ...]           # every flag word seen, in order of appearance
+    navigating: bool                 # in every report
+    velocity_ratio_max: float        # innovation test ratios (1 = the gate)
+    pos_horiz_ratio_max: float
+    pos_vert_ratio_max: float
+    gps_fix_max: int                 # -1: no GPS_RAW_INT
+
+
+@dataclass(frozen=True)
 class FlightReport:
     scenario: str
     sources: dict[str, SourceScore]
@@ -192,6 +210,7 @@ class FlightReport:
     failure: str
     exit_codes: dict[str, int]       # of every process of the graph
     failed_logs: dict[str, str]      # the end of the log of each whose status was not 0
+    ekf: EkfScore | None = None      # None without EKF_STATUS_REPORT in the window
 
     @classmethod
     def from_log(cls, log: FlightLog) -> 'FlightReport':
@@ -213,7 +232,7 @@ class FlightReport:
         window = 'takeoff to LAND' if log.takeoff_ns is not None else 'the whole log'
         return cls(log.scenario, sources, score_commands(log), setpoints, landing,
                    frames['ground'], frames['onboard'], (end - start) * 1e-9, window,
-                   log.failure, log.exit_codes, log.failed_logs)
+                   log.failure, log.exit_codes, log.failed_logs, score_ekf(log.ekf, start, end))
 
     def summary(self) -> str:
         lines = [f'scenario {self.scenario}: ' + (f'FAILED: {self.failure}' if self.failure
@@ -247,6 +266,14 @@ class FlightReport:
                          f' error {s.error_end_m * 100:.1f} cm at the end, RMS '
                          f'{s.error_rms_m * 100:.1f} cm, max {s.error_max_m * 100:.1f} cm, '
                          f'yaw max {s.yaw_error_max_deg:.1f} deg')
+        if (e := self.ekf) is not None:
+            said = 'navigating in every report' if e.navigating else 'NOT navigating in some'
+            gps = 'no GPS fix' if e.gps_fix_max < 2 else f'GPS fix type up to {e.gps_fix_max}'
+            lines.append(f'autopilot EKF over the flight: {e.reports} reports, flags '
+                         f"{', '.join(f'0x{f:x}' for f in e.flags)}, {said}; largest test "
+                         f'ratios velocity {e.velocity_ratio_max:.2f}, position '
+                         f'{e.pos_horiz_ratio_max:.2f}, height {e.pos_vert_ratio_max:.2f} '
+                         f'(gate 1); {gps}')
         if self.landing is not None:
             x, y, _ = self.landing.touchdown
             lines.append(f'landing: touchdown at ({x:+.3f}, {y:+.3f}) m, '
@@ -258,6 +285,16 @@ class FlightReport:
             lines.extend('  ' + line for tail in self.failed_logs.values()
                          for line in tail.splitlines())
         return '\n'.join(lines)
+
+
+def score_ekf(rows: list[list[float]], start_ns: int, end_ns: int) -> EkfScore | None:
+    """The EKF reports received in [start_ns, end_ns] (FlightLog.ekf), None if none."""
+    a = np.array([r for r in rows if start_ns <= r[0] <= end_ns], dtype=float).reshape(-1, 7)
+    if not len(a):
+        return None
+    flags = tuple(dict.fromkeys(int(f) for f in a[:, 1]))
+    return EkfScore(len(a), flags, bool(a[:, 5].all()), float(a[:, 2].max()),
+                    float(a[:, 3].max()), float(a[:, 4].max()), int(a[:, 6].max()))
 
 
 def flight_window(log: FlightLog, source: str) -> tuple[int, int]:

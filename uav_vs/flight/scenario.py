@@ -35,6 +35,7 @@ from uav_vs import graph
 from uav_vs.flight.ground_replay import DEFAULT_LAYOUT, ground_graph
 from uav_vs.flight.recorder import FlightRecorder, MissionError
 from uav_vs.flight.report import FlightLog, SetpointEvent
+from uav_vs.sim.sitl_process import HOME_LLA
 from uav_vs.vision.ground_config import default_config_path, read_params_file
 
 NORTH = math.pi / 2          # ENU heading of the vehicle at boot (MAVLink yaw 0 = north)
@@ -67,13 +68,18 @@ class Landing:
 @dataclass(frozen=True)
 class Scenario:
     """Take off to `takeoff_height`, hold `hold`, fly `setpoints`, land (on the pad of
-    `landing`, with the onboard pose; without one, where the vehicle is)."""
+    `landing`, with the onboard pose; without one, where the vehicle is).
+
+    With `gps_denied` the autopilot has no GPS: the relay feeds it the ground station's
+    pose as external navigation (vision_pose_topic, ekf_origin), and ArduPilot SITL runs
+    with config/ardupilot_gps_denied.parm."""
 
     name: str
     takeoff_height: float
     hold: Setpoint
     setpoints: tuple[Setpoint, ...] = ()
     landing: Landing | None = None
+    gps_denied: bool = False
 
 
 HOLD = Scenario('hold', 1.5, Setpoint((0.0, 0.0, 1.5), hold=5.0))
@@ -86,7 +92,10 @@ LAND_ON_PAD = Scenario('land_on_pad', 1.5, Setpoint((0.0, 0.0, 1.5)),
                        landing=Landing((0.8, -0.5)))
 DEMO = Scenario('demo', 1.5, Setpoint((0.0, 0.0, 1.5), hold=3.0), SETPOINTS.setpoints,
                 Landing((0.6, 0.4)))
-SCENARIOS = {s.name: s for s in (HOLD, SETPOINTS, LAND_ON_PAD, DEMO)}
+GPS_DENIED = Scenario('gps_denied', 1.5, Setpoint((0.0, 0.0, 1.5), hold=5.0), gps_denied=True)
+SCENARIOS = {s.name: s for s in (HOLD, SETPOINTS, LAND_ON_PAD, DEMO, GPS_DENIED)}
+# The parameters ArduPilot flies GPS_DENIED with, after its defaults.
+GPS_DENIED_PARAMS = default_config_path('ardupilot_gps_denied.parm')
 
 
 @dataclass(frozen=True)
@@ -110,6 +119,8 @@ class SitlLink:
 
     relay: str = 'tcp:127.0.0.1:5760'
     truth: str = 'tcp:127.0.0.1:5762'
+    # Where the EKF's origin goes without GPS: latitude, longitude (deg), altitude AMSL (m).
+    origin: tuple[float, float, float] = HOME_LLA
 
 
 def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
@@ -208,10 +219,19 @@ class _Mission:
         self.procs.update(ground_graph(c.ground, cameras, self.log_dir, layout=c.ground_layout))
         self._start_controller('ground')
         self._wait('sim_world', lambda: '/sim_world' in self.rec.reporting, timeout)
+        if self.scenario.gps_denied:
+            if self.sitl is None:
+                raise MissionError(f'{self.scenario.name} needs an autopilot with an EKF: '
+                                   'ArduPilot SITL')
+            lat, lon, alt = self.sitl.origin
+            relay_args = ['-p', 'vision_pose_topic:=ground/pose',
+                          '-p', f'ekf_origin:=[{lat:.7f}, {lon:.7f}, {alt:.2f}]']
+        else:
+            relay_args = []
         self._start('mavlink_relay_node', 'mavlink_relay_node', [
             '--params-file', str(c.relay), '-p', f'connection:={relay}',
             '-p', 'allow_arming:=true',
-            '-p', f'takeoff_height:={self.scenario.takeoff_height:.3f}'])
+            '-p', f'takeoff_height:={self.scenario.takeoff_height:.3f}', *relay_args])
 
     def _start_controller(self, source: str) -> None:
         """(Re)start fuzzy_controller_node flying on `source`'s pose (ground or onboard)."""

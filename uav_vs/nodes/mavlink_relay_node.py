@@ -55,8 +55,8 @@ from std_msgs.msg import Header
 from std_srvs.srv import SetBool, Trigger
 
 from uav_vs.autopilot.link import connection_problem, key_file_exposure, load_signing_key
-from uav_vs.autopilot.session import (AutopilotError, CommandState, LinkState, Limits, Session,
-                                      SessionConfig)
+from uav_vs.autopilot.session import (AutopilotError, CommandState, EkfStatus, LinkState, Limits,
+                                      Session, SessionConfig)
 from uav_vs.ros import log_bridge
 from uav_vs.ros.convert import msg_to_pose, odometry_to_msg, stamp_to_ns
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, run
@@ -139,6 +139,9 @@ PARAMS = [
           1e-4, 100.0, live=True),
     Param('vision.angle_std', T.DOUBLE, 0.05, 'vision attitude standard deviation, rad',
           1e-4, 3.2, live=True),
+    Param('ekf_origin', T.DOUBLE_ARRAY, [], 'flight without GPS on vision_pose_topic: the EKF '
+          'origin [latitude deg, longitude deg, altitude AMSL m], sent as SET_GPS_GLOBAL_ORIGIN '
+          'until the autopilot confirms it; readiness then needs no GPS fix ([]: with GPS)'),
 ]
 
 
@@ -154,7 +157,22 @@ def session_config(p: dict, logger: RcutilsLogger) -> SessionConfig:
         source_component=p['source_component'], target_system=p['target_system'],
         rates={name: p[key] for key, name in RATES.items()}, allow_arming=p['allow_arming'],
         signing_key_file=p['signing_key_file'] or None, signing_required=p['signing_required'],
-        **live_settings(p))
+        ekf_origin=ekf_origin(p), **live_settings(p))
+
+
+def ekf_origin(p: dict) -> tuple[float, float, float] | None:
+    """ekf_origin as (lat, lon, alt), None when empty; ParameterError names a bad one (the
+    session checks the ranges)."""
+    origin = p['ekf_origin']
+    if not origin:
+        return None
+    if len(origin) != 3:
+        raise ParameterError(f'ekf_origin: expected [latitude, longitude, altitude] or [], '
+                             f'got {list(origin)}')
+    if not p['vision_pose_topic']:
+        raise ParameterError('ekf_origin: set without vision_pose_topic: without GPS the EKF '
+                             'needs the vision pose')
+    return tuple(map(float, origin))
 
 
 def live_settings(p: dict) -> dict:
@@ -195,6 +213,15 @@ def check_key_file(path: str, logger: RcutilsLogger) -> None:
         raise ParameterError(f'signing_key_file: {err}') from None
     if exposure:
         logger.warning(exposure)
+
+
+def ekf_values(ekf: EkfStatus | None) -> dict[str, str]:
+    """EKF_STATUS_REPORT as diagnostics values: flags in hex, innovation test ratios."""
+    if ekf is None:
+        return {'ekf_flags': ''}
+    return {'ekf_flags': f'0x{ekf.flags:x}', 'ekf_navigating': ekf.navigating,
+            'ekf_velocity_ratio': f'{ekf.velocity:.3f}', 'ekf_pos_horiz_ratio': f'{ekf.pos_horiz:.3f}',
+            'ekf_pos_vert_ratio': f'{ekf.pos_vert:.3f}', 'ekf_compass_ratio': f'{ekf.compass:.3f}'}
 
 
 class MavlinkRelayNode(Node):
@@ -350,7 +377,10 @@ class MavlinkRelayNode(Node):
             'rejected_bad_signature': s.rejected_bad_signature,
             'rejected_old_timestamp': s.rejected_old_timestamp, **self.counts,
             'held': s.held, 'coalesced': s.coalesced, 'cmd_vel_wrong_type': wrong,
-            'statustext': s.statustext[-1] if s.statustext else ''})
+            'statustext': s.statustext[-1] if s.statustext else '',
+            'gps_fix': '' if s.gps_fix is None else s.gps_fix,
+            'ekf_origin': {None: '', True: 'set', False: 'waiting'}[s.ekf_origin_set],
+            **ekf_values(s.ekf)})
 
     # ---------------------------------------------------------------- services
     async def on_arm(self, request: SetBool.Request,

@@ -40,6 +40,8 @@ What it does like ArduPilot Copter 4.x (what the relay relies on):
   position controller holds it: a P loop of `land_hold_gain`, PSC_POSXY_P, against
   gusts) and disarms on touchdown. STABILIZE simulates no pilot sticks: the vehicle
   holds still.
+- SET_GPS_GLOBAL_ORIGIN answered by GPS_GLOBAL_ORIGIN with the origin it carried (the
+  EKF's origin for flight on external navigation; the simulated estimate ignores it).
 - MAVLink 2 signing when a key is configured or installed by SETUP_SIGNING (no ACK,
   ignored while armed): outgoing signed, unsigned incoming dropped, a signature checked
   before its timestamp counts (link.verify_signatures_first).
@@ -377,6 +379,10 @@ class MavlinkVehicle:
                                             msg.get_srcComponent())
         elif kind == 'SET_POSITION_TARGET_LOCAL_NED' and msg.target_system in (0, self.config.system_id):
             self._velocity_target(msg, now)
+        elif kind == 'SET_GPS_GLOBAL_ORIGIN' and msg.target_system in (0, self.config.system_id):
+            # as ArduPilot: the origin is taken once and confirmed by GPS_GLOBAL_ORIGIN
+            self._conn.mav.gps_global_origin_send(msg.latitude, msg.longitude, msg.altitude,
+                                                  msg.time_usec)
         elif kind == 'SETUP_SIGNING' and msg.target_system in (0, self.config.system_id):
             if not self._armed:
                 key = bytes(msg.secret_key)

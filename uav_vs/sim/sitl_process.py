@@ -20,7 +20,8 @@ from pathlib import Path
 SITL_ENV = 'UAV_VS_ARDUPILOT_SITL'
 BESIDE_CHECKOUT = (Path(__file__).resolve().parents[3] / 'shared' / 'sitl' / 'ardupilot'
                    / 'arducopter')
-HOME = '-35.363261,149.165230,584,353'     # lat, lon, AMSL m, heading deg (ArduPilot's CMAC)
+HOME_LLA = (-35.363261, 149.165230, 584.0)   # lat, lon deg, AMSL m (ArduPilot's CMAC)
+HOME = f'{HOME_LLA[0]},{HOME_LLA[1]},{HOME_LLA[2]:g},353'   # ... and heading, deg
 _CLONE_NEWNET = 0x40000000
 HOW_TO_GET = (f'set {SITL_ENV} to an ArduCopter SITL binary (build ArduPilot for the sitl '
               'board: ardupilot.org, "Setting up SITL on Linux", then ./waf copter) or put it '
