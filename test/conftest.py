@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from uav_vs import dds_shm
 from uav_vs.datasets import HOW_TO_GET, shared_data_dir
 
 REPO = Path(__file__).resolve().parents[1]
@@ -33,6 +34,16 @@ def _claim_ros_domain() -> int:
 os.environ['ROS_DOMAIN_ID'] = str(_claim_ros_domain())
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', str(REPO / 'config' / 'fastdds_shm.xml'))
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Free the shared memory of node processes killed by earlier runs (dds_shm)."""
+    dds_shm.remove_orphaned()
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """... and of this run's: tests kill nodes, ros2 launch and the fuzz harness too."""
+    dds_shm.remove_orphaned()
 
 
 # A test that starts node processes or the ros2 tools depends on DDS discovery, process

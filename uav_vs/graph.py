@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from uav_vs import dds_shm
+
 
 def executable(name: str) -> str:
     """Path of a console script: the venv's bin/ first, then PATH."""
@@ -37,7 +39,10 @@ def start(name: str, ros_args: list[str], log_dir: Path, label: str | None = Non
 
 
 def stop(procs: list[subprocess.Popen], timeout: float = 5.0) -> list[int]:
-    """SIGINT every process, then SIGTERM, then SIGKILL the ones still alive; return codes."""
+    """SIGINT every process, then SIGTERM, then SIGKILL the ones still alive; return codes.
+
+    The shared memory of a process that did not stop cleanly is removed (dds_shm).
+    """
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
         alive = [p for p in procs if p.poll() is None]
         for p in alive:
@@ -47,6 +52,7 @@ def stop(procs: list[subprocess.Popen], timeout: float = 5.0) -> list[int]:
                 p.wait(timeout)
             except subprocess.TimeoutExpired:
                 pass
+    dds_shm.remove_orphaned()
     return [p.returncode for p in procs]
 
 

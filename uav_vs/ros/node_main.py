@@ -117,6 +117,12 @@ def run(factory: Callable[[], Node | Sequence[Node]], name: str,
     except (KeyboardInterrupt, ExternalShutdownException):
         rclpy.try_shutdown()
         _exit_after_shutdown()
+    except RuntimeError:
+        # A SIGINT while the node is being built shuts the context down under it.
+        if not _INTERRUPTED.is_set():
+            raise
+        rclpy.try_shutdown()
+        _exit_after_shutdown()
     nodes = [built] if isinstance(built, Node) else list(built)
     spinner = EXECUTORS[choice]()
     try:
@@ -137,14 +143,27 @@ def run(factory: Callable[[], Node | Sequence[Node]], name: str,
         # rclpy's C++ (seen destroying the DDS participant) holds. It prints every thread's
         # stack and exits 1; a shutdown that finishes exits 0 first.
         faulthandler.dump_traceback_later(SHUTDOWN_GRACE_S, exit=True)
-        # The executor is left as it is: its shutdown() unregisters and frees its SIGINT
-        # guard condition, which rclpy's signal thread may be triggering at that moment
-        # (a segfault, seen under load); the process exits right after.
         for node in nodes:
             spinner.remove_node(node)
             node.destroy_node()
         rclpy.try_shutdown()
+        _release_participant(spinner)
     _exit_after_shutdown()
+
+
+def _release_participant(spinner: Executor) -> None:
+    """Let the DDS participant go, so that Fast DDS removes its shared-memory segments.
+
+    The participant outlives the context until nothing holds the nodes' handles; the
+    segments (64 MiB each with config/fastdds_shm.xml) then stay in /dev/shm, which is
+    memory, after the process has gone. EventsExecutor holds the handles until its
+    shutdown(); its signal callback is unregistered safely. SingleThreadedExecutor holds
+    none once its nodes are removed, and its shutdown() is skipped: it frees its SIGINT
+    guard condition, which rclpy's signal thread may be triggering at that moment (a
+    segfault, seen under load).
+    """
+    if not isinstance(spinner, SingleThreadedExecutor):
+        spinner.shutdown()
 
 
 def _exit_after_shutdown() -> NoReturn:
