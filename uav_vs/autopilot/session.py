@@ -375,7 +375,7 @@ class Session:
         self._autopilot = self._vehicle_type = self._mode = None
         self._mav_type = None
         self._armed = False
-        self._prearm_bit = self._ekf_flags = self._gps_fix = self._battery = None
+        self._prearm_bit = self._gps_fix = self._battery = None
         self._ekf: EkfStatus | None = None
         self._origin_set = False
         self._next_origin = 0.0
@@ -449,7 +449,8 @@ class Session:
             now = time.monotonic()
             known = self._autopilot is not None
             origin = self._origin_set if self.config.ekf_origin is not None else None
-            reasons = tuple(prearm_reasons(self._autopilot, self._prearm_bit, self._ekf_flags,
+            ekf_flags = None if self._ekf is None else self._ekf.flags
+            reasons = tuple(prearm_reasons(self._autopilot, self._prearm_bit, ekf_flags,
                                            self._gps_fix, origin)) if known else ()
             return Status(
                 link=self._link, autopilot=self._autopilot, vehicle_type=self._vehicle_type,
@@ -877,8 +878,8 @@ class Session:
         self._setpoint = ((0.0, 0.0, 0.0), 0.0, False)
         self._acks.clear()
         self._last_hb = None
-        self._prearm_bit = self._ekf_flags = self._gps_fix = None   # re-read: it may have rebooted
-        self._ekf, self._origin_set = None, False
+        self._prearm_bit = self._gps_fix = self._ekf = None   # re-read: it may have rebooted
+        self._origin_set = False
         self._cond.notify_all()
 
     def _send_origin(self, now: float) -> None:
@@ -1012,7 +1013,6 @@ class Session:
         self._battery = msg.voltage_battery * 1e-3 if msg.voltage_battery != 0xFFFF else None
 
     def _on_ekf_status(self, msg) -> None:
-        self._ekf_flags = msg.flags
         self._ekf = EkfStatus(msg.flags, msg.velocity_variance, msg.pos_horiz_variance,
                               msg.pos_vert_variance, msg.compass_variance)
 
