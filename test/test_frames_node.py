@@ -288,6 +288,22 @@ def test_malformed_poses_are_counted_and_skipped(ros_node, processes):
     assert proc.poll() is None
 
 
+def test_a_source_that_stops_is_reported_silent_until_it_comes_back(ros_node, processes):
+    """Only a source that has placed its frame can go silent; one never heard is not."""
+    start(processes, 'frames.silence_timeout:=2.0')
+    probe = Probe(ros_node)
+    assert wait_for(probe.connected, 30), processes.log('frames')
+    assert probe.diag['silent'] == ''
+    unit = (0.0, 0.0, 0.0, 1.0)
+    probe.publish('odom', (1.0, 2.0, 1.0), unit, 21)
+    assert wait_for(lambda: probe.transforms(21), 10), processes.log('frames')
+    assert wait_for(lambda: probe.diag.get('silent') == 'odom', 10), probe.diag
+    assert 'silent: odom for' in probe.diag['message']
+    probe.publish('odom', (1.0, 2.0, 1.0), unit, 22)
+    assert wait_for(lambda: probe.transforms(22) and probe.diag.get('silent') == '', 10), \
+        probe.diag
+
+
 @pytest.mark.parametrize('overrides, files, expected', [
     (['frames.onboard.child_frame:=base_link_ground'], (FRAMES, GROUND, ONBOARD),
      "frames.onboard.child_frame: 'base_link_ground' is also frames.ground.child_frame"),

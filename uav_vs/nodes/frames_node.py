@@ -15,9 +15,12 @@ nav_msgs/Odometry), `frames.world_frame` -> `frames.<source>.child_frame`, stamp
 the pose's stamp; the source named by `frames.base_link_source` places
 `frames.base_link_frame` too. A pose in another frame than `frames.world_frame`, with a
 quaternion that is no rotation or a non-finite position is counted (`malformed`),
-logged (at most every 5 s per source and kind of defect) and skipped. Also /diagnostics.
+logged (at most every 5 s per source and kind of defect) and skipped. Also /diagnostics:
+WARN while a source that has placed its frame sends none for `frames.silence_timeout`
+(its frame in /tf, and base_link if it places that, is going stale).
 Every parameter is read-only: frames, topics and calibration are the tree's at start-up.
 """
+import time
 from typing import Callable
 
 import numpy as np
@@ -77,6 +80,8 @@ PARAMS = [
     Param('frames.onboard_camera', T.BOOL, True, 'publish base_link -> the onboard camera '
           '(camera.frame_id, camera_to_base_link.* of onboard.yaml)'),
     Param('frames.diagnostics_period', T.DOUBLE, 1.0, 'diagnostics period, s', 0.05, 60.0),
+    Param('frames.silence_timeout', T.DOUBLE, 1.0, 'a source that has placed its frame and '
+          'then places none for this long, s, is reported silent (WARN)', 0.05, 3600.0),
 ]
 
 _MOUNTING = {'camera.frame_id': T.STRING, 'camera_to_base_link.xyz': T.DOUBLE_ARRAY,
@@ -103,6 +108,8 @@ class FramesNode(QuietPublisherNode):
         self.publish_static(list(static.values()))
         self.counts = {**{s: 0 for s in sources}, 'malformed': 0}
         self.static_count, self.reported_malformed, self.last_malformed = len(static), 0, ''
+        self.silence_timeout = p['frames.silence_timeout']
+        self.last_placed: dict[str, float] = {}     # source -> time.monotonic() of its last pose
         self.warnings = ThrottledWarnings(self)
         for source in sources:
             msg_type, read = SOURCES[source]
@@ -170,6 +177,7 @@ class FramesNode(QuietPublisherNode):
         self.tf_pub.publish(TFMessage(transforms=[
             transform_to_msg(position, quaternion, header, child) for child in children]))
         self.counts[source] += 1
+        self.last_placed[source] = time.monotonic()
 
     def malformed(self, source: str, kind: str, why: str) -> None:
         """Count and log (at most every 5 s per source and kind of defect) a skipped pose."""
@@ -186,8 +194,14 @@ class FramesNode(QuietPublisherNode):
         if new:
             level = WARN
             message += f'; {new} malformed poses skipped: {self.last_malformed}'
+        now = time.monotonic()
+        silent = {s: now - t for s, t in self.last_placed.items() if now - t > self.silence_timeout}
+        if silent:
+            level = WARN
+            message += '; silent: ' + ', '.join(f'{s} for {age:.1f} s' for s, age in silent.items())
         self.diag.publish(level, message, {**self.counts, 'static': self.static_count,
-                                           'base_link_source': self.base_link_source})
+                                           'base_link_source': self.base_link_source,
+                                           'silent': ' '.join(silent)})
 
 
 def main(args: list[str] | None = None) -> None:
