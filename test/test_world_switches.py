@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import REPO
+from conftest import REPO, wait_for
 from uav_vs.autopilot.frames import ned_to_enu, yaw_ned_to_enu
 from uav_vs.autopilot.session import Session, SessionConfig
 from uav_vs.control.controllers import PoseController, load_config
@@ -56,10 +56,8 @@ def fly_hold(switch: str) -> tuple[np.ndarray, np.ndarray]:
                                         allow_arming=True)).start()
         try:
             session.wait_connected(5.0)
-            deadline = time.monotonic() + 5.0
-            while not session.status().prearm_ok:
-                assert time.monotonic() < deadline, session.status().prearm_reasons
-                time.sleep(0.02)
+            assert wait_for(lambda: session.status().prearm_ok, 5.0), \
+                session.status().prearm_reasons
             session.set_guided()
             session.arm()
             session.takeoff(SETPOINT[2])

@@ -114,12 +114,9 @@ def run(factory: Callable[[], Node | Sequence[Node]], name: str,
         rclpy.logging.get_logger(name).fatal(str(err))
         rclpy.try_shutdown()
         sys.exit(2)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        rclpy.try_shutdown()
-        _exit_after_shutdown()
-    except RuntimeError:
+    except (KeyboardInterrupt, ExternalShutdownException, RuntimeError) as err:
         # A SIGINT while the node is being built shuts the context down under it.
-        if not _INTERRUPTED.is_set():
+        if isinstance(err, RuntimeError) and not _INTERRUPTED.is_set():
             raise
         rclpy.try_shutdown()
         _exit_after_shutdown()
