@@ -142,22 +142,26 @@ def run(factory: Callable[[], Node | Sequence[Node]], name: str,
         faulthandler.dump_traceback_later(SHUTDOWN_GRACE_S, exit=True)
         for node in nodes:
             spinner.remove_node(node)
+        _release_handles(spinner)
+        for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
-        _release_participant(spinner)
     _exit_after_shutdown()
 
 
-def _release_participant(spinner: Executor) -> None:
-    """Let the DDS participant go, so that Fast DDS removes its shared-memory segments.
+def _release_handles(spinner: Executor) -> None:
+    """Make the executor let go of the nodes' handles before the nodes are destroyed.
 
-    The participant outlives the context until nothing holds the nodes' handles; the
-    segments (64 MiB each with config/fastdds_shm.xml) then stay in /dev/shm, which is
-    memory, after the process has gone. EventsExecutor holds the handles until its
-    shutdown(); its signal callback is unregistered safely. SingleThreadedExecutor holds
-    none once its nodes are removed, and its shutdown() is skipped: it frees its SIGINT
-    guard condition, which rclpy's signal thread may be triggering at that moment (a
-    segfault, seen under load).
+    Until nothing holds the handles, the DDS participant outlives the context, and its
+    shared-memory segments (64 MiB each with config/fastdds_shm.xml) stay in /dev/shm,
+    which is memory, after the process has gone. EventsExecutor holds them until its
+    shutdown(), which also unregisters its middleware callbacks and its signal callback;
+    run before destroy_node(), it only releases them, and the handles are then finalised
+    by destroy_node() as with any executor. (Run after it, the executor itself finalised
+    the deferred QoS event handles, and once hung there, in rcl_event_fini, while a peer
+    left the graph.) SingleThreadedExecutor holds none once its nodes are removed, and its
+    shutdown() is skipped: it frees its SIGINT guard condition, which rclpy's signal
+    thread may be triggering at that moment (a segfault, seen under load).
     """
     if not isinstance(spinner, SingleThreadedExecutor):
         spinner.shutdown()
