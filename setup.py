@@ -15,6 +15,7 @@ EXECUTABLES = {
     'make_ground_bag': 'uav_vs.sim.ground_bag:main',
     'homography_pose_node': 'uav_vs.nodes.homography_pose_node:main',
     'target_tracker_node': 'uav_vs.nodes.target_tracker_node:main',
+    'target_follower_node': 'uav_vs.nodes.target_follower_node:main',
     'make_onboard_bag': 'uav_vs.sim.onboard_bag:main',
     'fuzzy_controller_node': 'uav_vs.nodes.fuzzy_controller_node:main',
     'bag_play': 'uav_vs.nodes.bag_player:main',

@@ -117,3 +117,29 @@ def test_a_process_that_failed_is_reported_with_the_end_of_its_log(tmp_path):
     assert log.exit_codes == {'ok': 0, 'bad': 1}
     assert summary[-5:] == ["exit status other than 0 when stopped: {'bad': 1}",
                             f'  {tmp_path / "bad.log"}:', '  38', '  39', '  why: 39']
+
+
+def test_following_is_scored_on_both_truths_and_kept(tmp_path):
+    """The vehicle 3 cm east and 4 cm north of the target (5 cm) over the scored frames,
+    the estimate 1 cm off and 2 degrees; frames outside the span are not scored."""
+    log = make_log()
+    frames = log.truth.stamps
+    t = (frames - T0) * 1e-9
+    target_p = log.truth.positions - [0.03, 0.04, 1.5]
+    target_p[:5] += 10.0                      # before the span: far away, not scored
+    log.target_truth = track(frames, target_p, 0.3 * t)
+    log.target = track(frames[::2], target_p[::2] + [0.0, 0.01, 0.0],
+                       0.3 * t[::2] + math.radians(2.0))
+    log.follow_start_ns, log.follow_end_ns = int(frames[5]), int(frames[45])
+    log.follow_inputs = {'target_follower_node': ['/ground/pose', '/onboard/target']}
+    follow = FlightReport.from_log(log).follow
+    assert follow.duration_s == pytest.approx(4.0) and follow.samples == 41
+    assert follow.error_rms_m == pytest.approx(0.05) and follow.error_max_m == pytest.approx(0.05)
+    assert follow.estimates == 20 and follow.estimate_rmse_m == pytest.approx(0.01)
+    assert follow.heading_rmse_deg == pytest.approx(2.0)
+    assert 'true distance RMS 5.0 cm' in FlightReport.from_log(log).summary()
+    log.save(tmp_path / 'flight.npz')
+    loaded = FlightLog.load(tmp_path / 'flight.npz')
+    assert FlightReport.from_log(loaded).follow == follow
+    assert loaded.follow_inputs == log.follow_inputs
+    assert FlightReport.from_log(make_log()).follow is None

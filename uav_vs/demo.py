@@ -68,10 +68,13 @@ def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
     scenario = SCENARIOS[scenario_name]
     vehicle = f'ArduCopter SITL on {sitl.relay}' if sitl else f'simulated {autopilot}'
     profile = default_config_path(f'sensors_{sensors}.yaml')
+    nodes = ['3 camshift_node', 'trinocular_pose_node',
+             *(['homography_pose_node'] if scenario.setpoints or scenario.landing else []),
+             *(['target_tracker_node', 'target_follower_node'] if scenario.follow else []),
+             'fuzzy_controller_node', 'mavlink_relay_node']
     print(f'closed loop: scenario {scenario.name}, {sensors} sensors ({profile.name}), '
-          f'sim_world ({vehicle}) + 3 camshift_node + trinocular_pose_node + '
-          'homography_pose_node + fuzzy_controller_node + mavlink_relay_node, recorded to '
-          f'{out}/bag (logs in {out}/logs/)', flush=True)
+          f"sim_world ({vehicle}) + {' + '.join(nodes)}, recorded to {out}/bag "
+          f'(logs in {out}/logs/)', flush=True)
     return report(fly(scenario, out, Configs(sensors=profile), autopilot=autopilot, sitl=sitl,
                       startup_timeout=SITL_STARTUP_S if sitl else 90.0), out)
 

@@ -3,7 +3,8 @@
 - `poses.png`: x, y, z and yaw over time of each vision pose, the autopilot's own
   estimate and the truth, as the chapter's Fig. 6 compares them;
 - `pose_errors.png`: each source's distance from the truth over time;
-- `top_view.png`: the flight seen from above, with the setpoints and the pad;
+- `top_view.png`: the flight seen from above, with the setpoints, the pad and the
+  followed target (its truth and the follower's estimate);
 - `commands.png`: the controller's velocity commands (section 6).
 """
 from pathlib import Path
@@ -104,6 +105,12 @@ def _top_view(fig: Figure, log: FlightLog, t0: int) -> None:
         ax.plot(x, y, 'o', mfc='none', mec='tab:orange', ms=10)
         ax.annotate(', '.join(here), (x, y), textcoords='offset points', xytext=(8, 6),
                     fontsize=8)
+    if len(log.target_truth):
+        ax.plot(*log.target_truth.positions[:, :2].T, color='tab:orange', lw=1.0,
+                label='target (truth/target)')
+    if len(log.target):
+        ax.plot(*log.target.positions[:, :2].T, '.', color='tab:brown', ms=2,
+                label='target estimate (target/pose)')
     ax.plot(0.0, 0.0, 'k^', ms=8, label='home (takeoff)')
     if log.pad is not None:
         ax.plot(*log.pad, 's', mfc='none', mec='tab:purple', ms=16, mew=2, label='landing pad')

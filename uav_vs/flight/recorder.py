@@ -39,15 +39,16 @@ class FlightRecorder:
         rclpy.init(context=self.context)
         self.node = rclpy.create_node('scenario_runner', context=self.context)
         self.rows: dict[str, list] = {k: [] for k in ('truth', 'ground', 'onboard', 'odom',
-                                                      'commands', 'ground_frames',
-                                                      'onboard_frames')}
+                                                      'target_truth', 'target', 'commands',
+                                                      'ground_frames', 'onboard_frames')}
         self.latest: dict[str, tuple[int, np.ndarray, float]] = {}
         self.relay: dict[str, str] = {}
         self.ekf: list[list[float]] = []        # FlightLog.ekf
         self.reporting: set[str] = set()        # nodes heard on /diagnostics
         node = self.node
         for name, topic in (('truth', 'truth/pose'), ('ground', 'ground/pose'),
-                            ('onboard', 'onboard/pose')):
+                            ('onboard', 'onboard/pose'), ('target_truth', 'truth/target'),
+                            ('target', 'target/pose')):
             node.create_subscription(PoseStamped, topic, lambda m, n=name: self._on_pose(n, m), 100)
         node.create_subscription(Odometry, 'autopilot/odom', self._on_odom, 100)
         node.create_subscription(TwistStamped, 'cmd_vel', self._on_cmd_vel, 100)
@@ -108,6 +109,10 @@ class FlightRecorder:
         self.setpoint = msg
         self.setpoint_pub.publish(msg)
 
+    def clear_setpoint(self) -> None:
+        """Stop re-sending the setpoint (another node sends them now)."""
+        self.setpoint = None
+
     def _send_setpoint(self) -> None:
         if self.setpoint is not None:
             self.setpoint_pub.publish(self.setpoint)
@@ -156,7 +161,8 @@ class FlightRecorder:
                          CommandTrack.from_rows(rows['commands']),
                          np.array(rows['ground_frames'], np.int64),
                          np.array(rows['onboard_frames'], np.int64), ekf=list(self.ekf),
-                         **events)
+                         target_truth=PoseTrack.from_rows(rows['target_truth']),
+                         target=PoseTrack.from_rows(rows['target']), **events)
 
 
 def ekf_row(relay: dict[str, str]) -> list[float]:

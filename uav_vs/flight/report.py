@@ -11,6 +11,9 @@ events; `FlightReport.from_log` scores it:
 - each setpoint (section 5: hold, move through setpoints): the true distance to it
   over the hold the mission accepted, as judged by the vision pose it flew on;
 - the landing: the true touchdown point's horizontal distance to the pad;
+- following a moving target: the vehicle's true horizontal distance to the target's
+  true centre over the scored span, and the vision estimate of the target (target/pose)
+  against its truth (both stamped with the onboard image's stamp);
 - latencies: a vision pose's arrival at the recorder minus its image's stamp, and a
   command's (cmd_vel computed from a vision pose carries its image's stamp) the same.
 
@@ -26,6 +29,7 @@ import numpy as np
 from uav_vs.autopilot.frames import wrap_angle
 
 SOURCES = ('ground', 'onboard', 'odom')
+TRACKS = ('truth', *SOURCES, 'target_truth', 'target')     # the PoseTracks of a FlightLog
 LABELS = {'truth': 'simulator truth', 'ground': 'ground/pose (trinocular, section 3)',
           'onboard': 'onboard/pose (homography, section 4)',
           'odom': 'autopilot/odom (autopilot estimate)'}
@@ -111,13 +115,21 @@ class FlightLog:
     # (0 or 1: absolute horizontal position, not the constant-position fallback), GPS fix
     # type (-1: none reported). Empty from an autopilot without the report (PX4).
     ekf: list[list[float]] = field(default_factory=list)
+    # Following a target: its truth (truth/target) and vision estimate (target/pose), both
+    # on the ground (z = 0), yaw its heading; the span scored (the vehicle had caught up).
+    target_truth: PoseTrack = field(default_factory=PoseTrack)
+    target: PoseTrack = field(default_factory=PoseTrack)
+    follow_start_ns: int | None = None
+    follow_end_ns: int | None = None
+    # The topics the controller and the follower subscribed to while following, by node.
+    follow_inputs: dict[str, list[str]] = field(default_factory=dict)
 
     def save(self, path: Path) -> None:
-        arrays = {f'{name}.{key}': value for name in ('truth', *SOURCES)
+        arrays = {f'{name}.{key}': value for name in TRACKS
                   for key, value in asdict(getattr(self, name)).items()}
         arrays.update({f'commands.{k}': v for k, v in asdict(self.commands).items()})
         meta = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in
-                ('truth', *SOURCES, 'commands', 'ground_frames', 'onboard_frames')}
+                (*TRACKS, 'commands', 'ground_frames', 'onboard_frames')}
         meta['setpoints'] = [asdict(event) for event in self.setpoints]
         np.savez_compressed(path, ground_frames=self.ground_frames,
                             onboard_frames=self.onboard_frames, meta=json.dumps(meta), **arrays)
@@ -127,7 +139,7 @@ class FlightLog:
         with np.load(path) as z:
             tracks = {name: PoseTrack(*(z[f'{name}.{k}'] for k in
                                         ('stamps', 'received', 'positions', 'yaws')))
-                      for name in ('truth', *SOURCES)}
+                      for name in TRACKS if f'{name}.stamps' in z}
             commands = CommandTrack(*(z[f'commands.{k}'] for k in
                                       ('stamps', 'received', 'linear', 'yaw_rate')))
             meta = json.loads(str(z['meta']))
@@ -197,6 +209,19 @@ class EkfScore:
 
 
 @dataclass(frozen=True)
+class FollowScore:
+    """Following the target over the scored span (section 5)."""
+
+    duration_s: float
+    samples: int                     # onboard frames with both truths
+    error_rms_m: float               # vehicle to target, horizontal, true positions
+    error_max_m: float
+    estimates: int                   # target/pose matched with the truth of its stamp
+    estimate_rmse_m: float           # target/pose against truth/target
+    heading_rmse_deg: float
+
+
+@dataclass(frozen=True)
 class FlightReport:
     scenario: str
     sources: dict[str, SourceScore]
@@ -211,6 +236,7 @@ class FlightReport:
     exit_codes: dict[str, int]       # of every process of the graph
     failed_logs: dict[str, str]      # the end of the log of each whose status was not 0
     ekf: EkfScore | None = None      # None without EKF_STATUS_REPORT in the window
+    follow: FollowScore | None = None   # None unless the mission followed a target
 
     @classmethod
     def from_log(cls, log: FlightLog) -> 'FlightReport':
@@ -232,7 +258,8 @@ class FlightReport:
         window = 'takeoff to LAND' if log.takeoff_ns is not None else 'the whole log'
         return cls(log.scenario, sources, score_commands(log), setpoints, landing,
                    frames['ground'], frames['onboard'], (end - start) * 1e-9, window,
-                   log.failure, log.exit_codes, log.failed_logs, score_ekf(log.ekf, start, end))
+                   log.failure, log.exit_codes, log.failed_logs, score_ekf(log.ekf, start, end),
+                   score_follow(log))
 
     def summary(self) -> str:
         lines = [f'scenario {self.scenario}: ' + (f'FAILED: {self.failure}' if self.failure
@@ -274,6 +301,12 @@ class FlightReport:
                          f'ratios velocity {e.velocity_ratio_max:.2f}, position '
                          f'{e.pos_horiz_ratio_max:.2f}, height {e.pos_vert_ratio_max:.2f} '
                          f'(gate 1); {gps}')
+        if (f := self.follow) is not None:
+            lines.append(f'follow: target followed for {f.duration_s:.1f} s ({f.samples} '
+                         f'frames): true distance RMS {f.error_rms_m * 100:.1f} cm, max '
+                         f'{f.error_max_m * 100:.1f} cm; target/pose ({f.estimates}) against '
+                         f'truth: RMSE {f.estimate_rmse_m * 100:.2f} cm, heading '
+                         f'{f.heading_rmse_deg:.2f} deg')
         if self.landing is not None:
             x, y, _ = self.landing.touchdown
             lines.append(f'landing: touchdown at ({x:+.3f}, {y:+.3f}) m, '
@@ -285,6 +318,31 @@ class FlightReport:
             lines.extend('  ' + line for tail in self.failed_logs.values()
                          for line in tail.splitlines())
         return '\n'.join(lines)
+
+
+def score_follow(log: FlightLog) -> FollowScore | None:
+    """The vehicle's true horizontal distance to the target's true centre at each onboard
+    frame stamped in [follow_start_ns, follow_end_ns], and the vision estimate against
+    the truth of its stamp; None if the mission did not follow a target."""
+    start, end = log.follow_start_ns, log.follow_end_ns
+    if start is None or end is None:
+        return None
+    target, truth = log.target_truth, log.truth
+    keep = (target.stamps >= start) & (target.stamps <= end)
+    vehicle = {int(s): i for i, s in enumerate(truth.stamps)}
+    keep &= np.array([int(s) in vehicle for s in target.stamps], bool)
+    rows = [vehicle[int(s)] for s in target.stamps[keep]]
+    error = np.linalg.norm(truth.positions[rows, :2] - target.positions[keep, :2], axis=1)
+    index = {int(s): i for i, s in enumerate(target.stamps)}
+    estimated = np.array([start <= s <= end and int(s) in index for s in log.target.stamps],
+                         bool)
+    rows = [index[int(s)] for s in log.target.stamps[estimated]]
+    miss = np.linalg.norm(log.target.positions[estimated, :2] - target.positions[rows, :2],
+                          axis=1)
+    heading = np.degrees(wrap_angle(log.target.yaws[estimated] - target.yaws[rows]))
+    return FollowScore((end - start) * 1e-9, int(keep.sum()), rms(error),
+                       float(error.max()) if len(error) else math.nan, int(estimated.sum()),
+                       rms(miss), rms(heading))
 
 
 def score_ekf(rows: list[list[float]], start_ns: int, end_ns: int) -> EkfScore | None:

@@ -11,6 +11,9 @@
     homography_pose_node       onboard/pose (section 4), started once the vehicle hovers
                                at the hold setpoint, initialised at the ground station's
                                pose of it (so both vision poses share `world`)
+    target_tracker_node,       following a target (section 5): the target found in the
+    target_follower_node       onboard images, placed on the ground from ground/pose,
+                               becomes the setpoint; started after the hold
 
 and flies the mission: the relay's `set_guided`, `arm`, `takeoff`, `set_guided` again
 (PX4 holds in AUTO.LOITER after its takeoff); the controller's
@@ -66,9 +69,23 @@ class Landing:
 
 
 @dataclass(frozen=True)
+class Follow:
+    """Follow the target moving on the ground (section 5) after the hold: sim_world
+    drives it (ground_target.*), target_tracker_node finds it in the onboard images and
+    target_follower_node turns it into setpoints `height` above it. Scored for `duration`
+    s once `settle` s have passed since its first estimate."""
+
+    duration: float = 30.0       # s
+    settle: float = 6.0          # s
+    height: float = 1.5          # m
+    lost_after: float = 2.0      # s without a target estimate: the mission fails
+
+
+@dataclass(frozen=True)
 class Scenario:
     """Take off to `takeoff_height`, hold `hold`, fly `setpoints`, land (on the pad of
-    `landing`, with the onboard pose; without one, where the vehicle is).
+    `landing`, with the onboard pose; without one, where the vehicle is); with `follow`,
+    follow the moving target after the hold, then land where the vehicle is.
 
     With `gps_denied` the autopilot has no GPS: the relay feeds it the ground station's
     pose as external navigation (vision_pose_topic, ekf_origin), and ArduPilot SITL runs
@@ -80,6 +97,7 @@ class Scenario:
     setpoints: tuple[Setpoint, ...] = ()
     landing: Landing | None = None
     gps_denied: bool = False
+    follow: Follow | None = None
 
 
 HOLD = Scenario('hold', 1.5, Setpoint((0.0, 0.0, 1.5), hold=5.0))
@@ -93,7 +111,8 @@ LAND_ON_PAD = Scenario('land_on_pad', 1.5, Setpoint((0.0, 0.0, 1.5)),
 DEMO = Scenario('demo', 1.5, Setpoint((0.0, 0.0, 1.5), hold=3.0), SETPOINTS.setpoints,
                 Landing((0.6, 0.4)))
 GPS_DENIED = Scenario('gps_denied', 1.5, Setpoint((0.0, 0.0, 1.5), hold=5.0), gps_denied=True)
-SCENARIOS = {s.name: s for s in (HOLD, SETPOINTS, LAND_ON_PAD, DEMO, GPS_DENIED)}
+FOLLOW = Scenario('follow', 1.5, Setpoint((0.0, 0.0, 1.5)), follow=Follow())
+SCENARIOS = {s.name: s for s in (HOLD, SETPOINTS, LAND_ON_PAD, DEMO, GPS_DENIED, FOLLOW)}
 # The parameters ArduPilot flies GPS_DENIED with, after its defaults.
 GPS_DENIED_PARAMS = default_config_path('ardupilot_gps_denied.parm')
 
@@ -149,7 +168,7 @@ def recorded_topics(cameras: list[str]) -> list[str]:
                   for topic in ('image_raw/compressed', 'camera_info')]
     return [*per_camera, *(f'{cam}/landmarks' for cam in cameras), 'truth/pose',
             'ground/pose', 'ground/landmarks', 'onboard/pose', 'setpoint', 'cmd_vel',
-            'autopilot/odom']
+            'autopilot/odom', 'truth/target', 'onboard/target', 'target/pose']
 
 
 def free_port() -> int:
@@ -215,7 +234,8 @@ class _Mission:
         self._start('sim_world', 'sim_world', [
             '--params-file', str(c.ground), '--params-file', str(c.onboard),
             '--params-file', str(c.world),
-            *(['--params-file', str(c.sensors)] if c.sensors else []), *vehicle])
+            *(['--params-file', str(c.sensors)] if c.sensors else []), *vehicle,
+            *(['-p', 'ground_target.enabled:=true'] if self.scenario.follow else [])])
         self.procs.update(ground_graph(c.ground, cameras, self.log_dir, layout=c.ground_layout))
         self._start_controller('ground')
         self._wait('sim_world', lambda: '/sim_world' in self.rec.reporting, timeout)
@@ -274,6 +294,8 @@ class _Mission:
         rec.call(Trigger, 'set_guided', Trigger.Request(), 15.0)
         self._enable_controller()
         self._fly_to('hold', s.hold, 'ground')
+        if s.follow is not None:
+            self._follow(s.follow)
         if s.setpoints or s.landing is not None:
             self._start_onboard()
         for k, sp in enumerate(s.setpoints, 1):
@@ -334,6 +356,35 @@ class _Mission:
             '-p', f'init.position:=[{x:.4f}, {y:.4f}, {z:.4f}]',
             '-p', f'init.rpy:=[0.0, 0.0, {yaw:.5f}]'])
         self._wait('the first onboard/pose', lambda: self._fresh('onboard'), 30.0)
+
+    def _follow(self, follow: Follow) -> None:
+        """Start the target tracker and the follower, whose setpoints replace the
+        mission's; follow the target for `settle`, then the scored `duration`."""
+        c = self.configs
+        self._start('target_tracker_node', 'target_tracker_node', [
+            '--params-file', str(c.onboard), '-p', 'target.features:=orb',
+            '-p', 'target.max_features:=2000'])
+        self._start('target_follower_node', 'target_follower_node', [
+            '--params-file', str(c.onboard), '-p', f'follow.height:={follow.height:.3f}',
+            '-p', f'follow.yaw:={self.scenario.hold.yaw:.5f}'])
+        self._wait('the first target/pose', lambda: self._fresh('target'), 30.0)
+        self.rec.clear_setpoint()
+        self._keep_following(follow.settle, follow.lost_after)
+        self.events['follow_start_ns'] = time.time_ns()
+        self._keep_following(follow.duration, follow.lost_after)
+        self.events['follow_end_ns'] = time.time_ns()
+        self.events['follow_inputs'] = {
+            node: list(self.rec.subscriptions(node))
+            for node in ('fuzzy_controller_node', 'target_follower_node')}
+
+    def _keep_following(self, seconds: float, lost_after: float) -> None:
+        """Let the follower fly for `seconds`; MissionError if the target is lost."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self._check_alive()
+            if not self._fresh('target', lost_after):
+                raise MissionError(f'lost the target: no target/pose for {lost_after:g} s')
+            time.sleep(0.05)
 
     def _land_on_pad(self, landing: Landing) -> None:
         """Fly over the pad on the onboard pose, descend, then LAND."""

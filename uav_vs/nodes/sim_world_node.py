@@ -17,7 +17,10 @@ camera lagging the first, with `unsynchronised` on: its own capture's):
 (JPEG of `world.jpeg_quality`, encoded only while someone subscribes, e.g. a bag
 recorder) and `camK/camera_info` for each ground camera, the same three under `onboard/`
 (not while the onboard camera is below `onboard.min_height`), `truth/pose`
-(PoseStamped, base_link in `world` ENU, for evaluation only) and /diagnostics.
+(PoseStamped, base_link in `world` ENU, for evaluation only) and /diagnostics. With
+`ground_target.enabled` the onboard camera also sees a picture (`ground_target.template`)
+lying on the ground and driving round a circle (uav_vs.sim.ground_target), whose true
+centre and heading go out with every onboard frame on `truth/target` (PoseStamped, z = 0).
 The camera effects of uav_vs.sim.camera_effects (noise, lens distortion, motion blur,
 exposure drift, JPEG artefacts, dropped frames, latency, unsynchronised ground cameras,
 landmarks partly occluded),
@@ -27,10 +30,12 @@ estimate are each switched by their own parameter group; by default only the noi
 the calibrated distortion are on.
 Every parameter is read-only: the world, its vehicle and cameras are built at start-up.
 """
+import math
 import time
 from dataclasses import replace
 from typing import Callable
 
+import cv2
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped
@@ -43,12 +48,14 @@ from uav_vs.nodes.homography_pose_node import ONBOARD_PARAMS
 from uav_vs.ros.convert import (bgr_to_compressed, bgr_to_image, camera_info, ns_to_stamp,
                                 pose_to_msg, stamp_to_ns)
 from uav_vs.ros.ground_params import declare_cameras, declare_landmarks
+from uav_vs.ros.image_files import read_image
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, run
 from uav_vs.ros.params import Param, T, declare
 from uav_vs.sim.calibration_error import CalibrationSpread, true_camera, true_mount
 from uav_vs.sim.camera_effects import CameraEffects, CameraLags, EffectsConfig, Latency, Occlusion
 from uav_vs.sim.delay_line import DelayLine
 from uav_vs.sim.ground_scene import GroundScene
+from uav_vs.sim.ground_target import CirclePath, GroundTarget
 from uav_vs.sim.mavlink_vehicle import CUSTOM_MODES, MavlinkVehicle, VehicleConfig
 from uav_vs.sim.onboard_scene import OnboardScene
 from uav_vs.sim.sitl_truth import SitlTruth
@@ -149,6 +156,20 @@ PARAMS = [
     Param('occlusion.probability', T.DOUBLE, 0.05, 'probability per landmark, camera and frame',
           0.0, 1.0),
     Param('occlusion.fraction', T.DOUBLE, 0.3, "fraction of the landmark's disc hidden", 0.0, 1.0),
+    # The target to follow (section 5), seen by the onboard camera only.
+    Param('ground_target.enabled', T.BOOL, False, 'a picture moving on the ground under the '
+          'onboard camera, its truth on truth/target'),
+    Param('ground_target.template', T.STRING, 'uav_vs/sim/assets/box.png',
+          'the picture (found like target_tracker_node\'s target.template)'),
+    Param('ground_target.width', T.DOUBLE, 0.4, "the picture's width on the ground, m", 0.01,
+          100.0),
+    Param('ground_target.center', T.DOUBLE_ARRAY, [0.0, 0.0],
+          'centre of its circular path, x y in world, m', size=2),
+    Param('ground_target.radius', T.DOUBLE, 0.4, 'radius of the path, m', 0.0, 1000.0),
+    Param('ground_target.speed', T.DOUBLE, 0.08, 'speed along the path (counter-clockwise), '
+          'm/s', 0.0, 20.0),
+    Param('ground_target.phase', T.DOUBLE, 0.0, 'where on the path it is when the world '
+          'starts, rad (0: east of the centre)', -2 * math.pi, 2 * math.pi),
 ]
 
 
@@ -252,13 +273,15 @@ class SimWorldNode(Node):
         self.dt = {'ground': 1.0 / p['ground.rate'] if p['ground.rate'] > 0 else 0.0,
                    'onboard': 1.0 / p['onboard.rate'] if p['onboard.rate'] > 0 else 0.0}
         vehicle, where = self._vehicle(p)
-        self.world = SimWorld(vehicle, ground_scene, onboard_scene, p['onboard.min_height'])
+        self.world = SimWorld(vehicle, ground_scene, onboard_scene, p['onboard.min_height'],
+                              self._target(p))
 
         quality = p['world.jpeg_quality']
         self.cameras = [CameraOutput(self, cam.name, cam, quality)
                         for cam in nominal_ground.cameras]
         self.onboard_camera = CameraOutput(self, 'onboard', nominal_onboard.camera, quality)
         self.truth_pub = self.create_publisher(PoseStamped, 'truth/pose', 50)
+        self.target_truth_pub = self.create_publisher(PoseStamped, 'truth/target', 50)
         self.counts = dict(ground_frames=0, onboard_frames=0, onboard_too_low=0,
                            dropped_frames=0, occluded_landmarks=0)
         self.render_ms = dict(ground_render_ms=float('nan'), onboard_render_ms=float('nan'))
@@ -271,6 +294,17 @@ class SimWorldNode(Node):
         self.get_logger().info(f'vehicle: {where}; {len(self.cameras)} ground cameras at '
                                f'{p["ground.rate"]:g} Hz, onboard camera at '
                                f'{p["onboard.rate"]:g} Hz')
+
+    @staticmethod
+    def _target(p: dict) -> GroundTarget | None:
+        """The moving ground target of the `ground_target.*` parameters, if enabled."""
+        if not p['ground_target.enabled']:
+            return None
+        template, _ = read_image('ground_target.template', p['ground_target.template'],
+                                 cv2.IMREAD_COLOR)
+        return GroundTarget(template, p['ground_target.width'], CirclePath(
+            tuple(p['ground_target.center']), p['ground_target.radius'],
+            p['ground_target.speed'], p['ground_target.phase']))
 
     @staticmethod
     def _vehicle(p: dict) -> tuple[Vehicle, str]:
@@ -362,6 +396,12 @@ class SimWorldNode(Node):
         frame = self._capture(self.onboard_effects, image,
                               self.world.onboard_image_velocity(state), 'onboard')
         self.render_ms['onboard_render_ms'] = round((time.perf_counter() - start) * 1e3, 2)
+        target = self.world.target_pose(state)
+        if target is not None:
+            (x, y), heading = target
+            self.target_truth_pub.publish(pose_to_msg(
+                np.array([x, y, 0.0]), np.array([0.0, 0.0, math.sin(heading / 2),
+                                                 math.cos(heading / 2)]), header))
         if frame is not None:
             self._deliver('onboard', header,
                           lambda: self.onboard_camera.publish(frame, header.stamp))

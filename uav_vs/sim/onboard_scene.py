@@ -67,21 +67,37 @@ class OnboardScene:
         """Plane-to-ideal-image homography K [r1 r2 t] of the body pose (eq 27)."""
         return plane_homography(self.camera.K, *camera_pose(R_wb, p_wb, self.camera_to_body))
 
-    def render(self, R_wb: np.ndarray, p_wb: np.ndarray, blur_sigma: float = 0.0) -> np.ndarray:
-        """The camera image (BGR uint8) with the body at world-from-body R_wb, p_wb."""
-        cam = self.camera
-        H_img_tex = self.homography(R_wb, p_wb) @ np.linalg.inv(self.plane_to_texture)
-        if self._rays is None:
-            img = cv2.warpPerspective(self.texture, H_img_tex, (cam.width, cam.height),
-                                      flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        else:
-            # Ideal normalised coordinates -> texture pixel: (K^-1 H_img_tex)^-1.
-            M = np.linalg.inv(np.linalg.solve(cam.K, H_img_tex))
-            img = cv2.remap(self.texture, cv2.perspectiveTransform(self._rays, M), None,
-                            cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    def render(self, R_wb: np.ndarray, p_wb: np.ndarray, blur_sigma: float = 0.0,
+               decals: tuple[tuple[np.ndarray, np.ndarray], ...] = ()) -> np.ndarray:
+        """The camera image (BGR uint8) with the body at world-from-body R_wb, p_wb.
+
+        `decals` are pictures lying on the ground over the texture (a target): each a BGR
+        image and the 3x3 homography from its pixels to plane points (x, y, 1), m."""
+        H_img_plane = self.homography(R_wb, p_wb)
+        img = self._warp(self.texture, H_img_plane @ np.linalg.inv(self.plane_to_texture),
+                         cv2.BORDER_REFLECT)
+        for picture, plane_from_picture in decals:
+            H = H_img_plane @ plane_from_picture
+            inside = self._warp(np.full(picture.shape[:2], 255, np.uint8), H,
+                                cv2.BORDER_CONSTANT)
+            warped = self._warp(picture, H, cv2.BORDER_CONSTANT).astype(np.float32)
+            alpha = (inside.astype(np.float32) / 255.0)[..., None]
+            img = (img * (1.0 - alpha) + warped * alpha + 0.5).astype(np.uint8)
         if blur_sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
         return self.noise(img)
+
+    def _warp(self, source: np.ndarray, H_img_source: np.ndarray, border: int) -> np.ndarray:
+        """`source` seen through the camera, given the homography from its pixels to ideal
+        image pixels; through the lens distortion when the camera has one."""
+        cam = self.camera
+        if self._rays is None:
+            return cv2.warpPerspective(source, H_img_source, (cam.width, cam.height),
+                                       flags=cv2.INTER_LINEAR, borderMode=border)
+        # Ideal normalised coordinates -> source pixel: (K^-1 H_img_source)^-1.
+        M = np.linalg.inv(np.linalg.solve(cam.K, H_img_source))
+        return cv2.remap(source, cv2.perspectiveTransform(self._rays, M), None,
+                         cv2.INTER_LINEAR, borderMode=border)
 
 
 @dataclass(frozen=True)

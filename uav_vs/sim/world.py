@@ -10,7 +10,9 @@ it stays level, and base_link's attitude is its heading alone; SITL's vehicle ti
 
 `SimWorld` samples the vehicle's true state and renders the ground trinocular cameras
 (uav_vs.sim.ground_scene, section 3) and the down-looking onboard camera
-(uav_vs.sim.onboard_scene, section 4) at that state.
+(uav_vs.sim.onboard_scene, section 4) at that state; the onboard camera also sees the
+moving ground target when the world has one (uav_vs.sim.ground_target, section 5),
+which starts its path when the world starts.
 """
 from dataclasses import dataclass
 from typing import Protocol
@@ -19,6 +21,7 @@ import numpy as np
 
 from uav_vs.autopilot.frames import ned_to_enu, yaw_ned_to_enu
 from uav_vs.sim.ground_scene import GroundScene, Pose, rot_z
+from uav_vs.sim.ground_target import GroundTarget
 from uav_vs.sim.mavlink_vehicle import MavlinkVehicle, Truth
 from uav_vs.sim.onboard_scene import OnboardScene
 from uav_vs.vision.camera import Camera
@@ -96,11 +99,12 @@ class SimWorld:
     """The vehicle's true state and the ground and onboard cameras' views of it."""
 
     def __init__(self, vehicle: Vehicle, ground: GroundScene, onboard: OnboardScene,
-                 onboard_min_height: float) -> None:
+                 onboard_min_height: float, target: GroundTarget | None = None) -> None:
         self.vehicle = vehicle
         self.ground = ground
         self.onboard = onboard
         self.onboard_min_height = onboard_min_height
+        self.target = target
         self._t0 = vehicle.state().time
 
     def state(self) -> VehicleState:
@@ -146,7 +150,13 @@ class SimWorld:
         than `onboard_min_height` (on the ground it would look into the ground plane)."""
         if self.onboard_height(state) < self.onboard_min_height:
             return None
-        return self.onboard.render(state.R, state.position)
+        decals = () if self.target is None else \
+            ((self.target.template, self.target.plane_from_template(state.time - self._t0)),)
+        return self.onboard.render(state.R, state.position, decals=decals)
+
+    def target_pose(self, state: VehicleState) -> tuple[np.ndarray, float] | None:
+        """The ground target's centre (x, y), m, and heading, rad, at `state`'s time."""
+        return None if self.target is None else self.target.path.pose(state.time - self._t0)
 
     def close(self) -> None:
         self.vehicle.close()
