@@ -344,8 +344,10 @@ def test_bad_reference_points_are_refused(flat_params):
 
 
 def test_every_setting_is_in_the_yaml_and_commented():
-    # Keys of the nodes themselves (homography_pose.*, target.*) are declared by the nodes.
-    flat = {k for k in read_params_file(CONFIG) if not k.startswith(('homography_pose.', 'target.'))}
+    # Keys of the nodes themselves (homography_pose.*, target.*, follow.*) are declared by
+    # the nodes.
+    flat = {k for k in read_params_file(CONFIG)
+            if not k.startswith(('homography_pose.', 'target.', 'follow.'))}
     assert {s.key for s in SETTINGS} == flat
     lines = CONFIG.read_text().splitlines()
     for k, line in enumerate(lines):

@@ -119,3 +119,10 @@ def test_a_bad_parameter_stops_the_node_with_one_line(tmp_path: Path):
     assert run.returncode == 2
     fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
     assert len(fatal) == 1 and 'follow.height' in fatal[0], run.stdout + run.stderr
+
+
+def test_every_follow_parameter_is_in_the_yaml_with_its_default():
+    from uav_vs.nodes.target_follower_node import PARAMS
+
+    yaml = {k: v for k, v in read_params_file(CONFIG).items() if k.startswith('follow.')}
+    assert yaml == {spec.name: spec.default for spec in PARAMS}
