@@ -196,3 +196,59 @@ def test_the_autopilots_tilt_places_the_target_a_level_pose_cannot(cfg, box):
 def test_a_follow_configuration_out_of_range_is_refused(field, value):
     with pytest.raises(ValueError, match=field):
         FollowConfig(**{field: value})
+
+
+# ------------------------------------------------- the shipped bag of a followed target
+
+BAG = Path(__file__).resolve().parents[1] / 'bags' / 'onboard_follow'
+
+
+def test_the_follow_bag_holds_the_target_of_the_world():
+    """bags/onboard_follow: every frame with truth/pose and truth/target of its stamp, the
+    target on the follow scenario's circle (sim_world's ground_target defaults)."""
+    from rclpy.serialization import deserialize_message
+    from geometry_msgs.msg import PoseStamped
+
+    from uav_vs.bag.reader import read_messages
+    from uav_vs.ros.convert import msg_to_pose, stamp_to_ns, yaw_of
+    from uav_vs.sim.onboard_bag import START_NS, follow_target
+
+    by_topic: dict[str, list] = {}
+    for m in read_messages(BAG):
+        by_topic.setdefault(m.topic, []).append(m)
+    assert {t: len(v) for t, v in by_topic.items()} == {
+        'onboard/image_raw/compressed': 101, 'onboard/camera_info': 101, 'truth/pose': 101,
+        'truth/target': 101}
+    path = follow_target().path
+    for m in by_topic['truth/target']:
+        msg = deserialize_message(m.raw, PoseStamped)
+        t = (stamp_to_ns(msg.header.stamp) - START_NS) * 1e-9
+        position, q = msg_to_pose(msg)
+        (x, y), heading = path.pose(t)
+        assert np.allclose(position, [x, y, 0.0], atol=1e-9) and m.t_ns == stamp_to_ns(
+            msg.header.stamp)
+        assert yaw_of(q) == pytest.approx(math.remainder(heading, 2 * math.pi), abs=1e-9)
+
+
+def test_the_follow_bag_replayed_through_the_tracker_and_follower_places_the_target(tmp_path):
+    """The shipped bag through target_tracker_node (ORB, as the follow scenario runs it)
+    and target_follower_node placing the target from the bag's truth/pose: target/pose
+    within 1 cm RMS of truth/target on nearly every frame."""
+    from uav_vs import graph
+    from uav_vs.flight.pose_replay import pose_errors, replay_bag
+
+    def start() -> list:
+        return [graph.start('target_tracker_node', [
+                    '--params-file', str(CONFIG), '-p', 'target.features:=orb',
+                    '-p', 'target.max_features:=2000', '-p', 'target.image_qos:=reliable'],
+                    tmp_path, 'target_tracker_node'),
+                graph.start('target_follower_node', [
+                    '--params-file', str(CONFIG), '-p', 'follow.pose_topic:=truth/pose',
+                    '-p', "follow.attitude_topic:=''"], tmp_path, 'target_follower_node')]
+
+    replay = replay_bag(BAG, start, 'target/pose', rate=1.0, truth_topic='truth/target')
+    errors = pose_errors(replay.poses, replay.truth)
+    assert not any(replay.return_codes), replay.return_codes
+    assert len(errors.stamps) >= 0.9 * len(replay.truth), (len(errors.stamps), len(replay.truth))
+    assert np.sqrt(np.mean(errors.position_m ** 2)) < 0.01, errors.position_m
+    assert np.sqrt(np.mean(errors.yaw_deg ** 2)) < 2.0, errors.yaw_deg

@@ -27,7 +27,7 @@ from uav_vs.ros.replay import RawPublishers
 @dataclass
 class Replay:
     poses: dict[int, PoseStamped]        # received, by header stamp (ns)
-    truth: dict[int, PoseStamped]        # the bag's truth/pose, by stamp
+    truth: dict[int, PoseStamped]        # the bag's truth (truth/pose), by stamp
     return_codes: list[int] = field(default_factory=list)
 
 
@@ -44,8 +44,10 @@ class PoseErrors:
 
 
 def replay_bag(bag: Path, start_nodes: Callable[[], list[Popen]], pose_topic: str,
-               rate: float = 1.0, settle_s: float = 2.0, start_timeout_s: float = 30.0) -> Replay:
-    """Read `bag`, start the nodes, feed them the bag, collect `pose_topic`, stop them.
+               rate: float = 1.0, settle_s: float = 2.0, start_timeout_s: float = 30.0,
+               truth_topic: str = 'truth/pose') -> Replay:
+    """Read `bag`, start the nodes, feed them the bag, collect `pose_topic`, stop them;
+    the truth is the bag's `truth_topic`.
 
     Publishing starts when every image topic of the bag has a matched subscriber and
     `pose_topic` a matched publisher; rate 0 publishes as fast as possible. Raises
@@ -53,7 +55,7 @@ def replay_bag(bag: Path, start_nodes: Callable[[], list[Popen]], pose_topic: st
     """
     messages = list(read_messages(bag))
     truth = {stamp_to_ns(m.header.stamp): m for m in
-             (deserialize_message(b.raw, PoseStamped) for b in messages if b.topic == 'truth/pose')}
+             (deserialize_message(b.raw, PoseStamped) for b in messages if b.topic == truth_topic)}
     procs = start_nodes()
     ctx = rclpy.Context()
     rclpy.init(context=ctx)

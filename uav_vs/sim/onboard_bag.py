@@ -9,8 +9,16 @@ The down-looking camera of config/onboard.yaml flies `Trajectory` (take-off hove
 - `onboard/camera_info`          sensor_msgs/msg/CameraInfo (plumb bob)
 - `truth/pose`                   geometry_msgs/msg/PoseStamped, frame `world`: base_link
 
+With `--follow` the camera instead flies above the target of the follow scenario
+(`assets/box.png`, 0.4 m wide, driving round a 0.4 m circle at 8 cm/s:
+uav_vs.sim.ground_target), which every frame shows, and writes its truth too:
+
+- `truth/target`                 geometry_msgs/msg/PoseStamped, frame `world`: its centre
+                                 on the ground (z = 0), heading as yaw
+
 Written with the pure-Python `rosbags` library (no ROS needed):
     make_onboard_bag --out bags/onboard --rate 15 --duration 10 --seed 0
+    make_onboard_bag --follow --out bags/onboard_follow --rate 10 --duration 10 --seed 0
 """
 import argparse
 import shutil
@@ -23,7 +31,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
-from uav_vs.sim.onboard_scene import OnboardScene, Trajectory, fly
+from uav_vs.sim.ground_target import CirclePath, GroundTarget
+from uav_vs.sim.onboard_scene import ASSETS, OnboardScene, Trajectory, fly, following
 from uav_vs.vision.camera import CalibrationError
 from uav_vs.vision.ground_config import read_params_file
 from uav_vs.vision.onboard_config import load_onboard_config
@@ -31,7 +40,14 @@ from uav_vs.vision.onboard_config import load_onboard_config
 START_NS = 1_700_000_000 * 10**9     # stamp of the first frame
 TOPICS = {'image': ('onboard/image_raw/compressed', 'sensor_msgs/msg/CompressedImage'),
           'info': ('onboard/camera_info', 'sensor_msgs/msg/CameraInfo'),
-          'truth': ('truth/pose', 'geometry_msgs/msg/PoseStamped')}
+          'truth': ('truth/pose', 'geometry_msgs/msg/PoseStamped'),
+          'target': ('truth/target', 'geometry_msgs/msg/PoseStamped')}
+FOLLOW_DURATION = 10.0    # s of the --follow flight when no --duration is given
+
+
+def follow_target() -> GroundTarget:
+    """The target of the follow scenario (sim_world's ground_target defaults)."""
+    return GroundTarget(cv2.imread(str(ASSETS / 'box.png')), 0.4, CirclePath())
 
 
 def default_config() -> Path:
@@ -43,8 +59,9 @@ def default_config() -> Path:
 
 
 def write_bag(out: Path, config: Path, rate: float, duration: float | None, seed: int,
-              quality: int = 90) -> int:
-    """Render and write the bag; return the number of frames."""
+              quality: int = 90, follow: bool = False) -> int:
+    """Render and write the bag (`follow`: above the moving target); return the number of
+    frames."""
     cfg = load_onboard_config(read_params_file(config))
     cam = cfg.camera
     scene = OnboardScene(cam, cfg.camera_to_body, seed=seed)
@@ -54,11 +71,15 @@ def write_bag(out: Path, config: Path, rate: float, duration: float | None, seed
     info = cam.camera_info_fields()
     roi = T['sensor_msgs/msg/RegionOfInterest'](x_offset=0, y_offset=0, height=0, width=0,
                                                 do_rectify=False)
+    target = follow_target() if follow else None
+    trajectory = Trajectory() if target is None else \
+        following(target, FOLLOW_DURATION if duration is None else duration)
+    topics = {k: v for k, v in TOPICS.items() if k != 'target' or follow}
     frames = 0
     with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conns = {k: writer.add_connection(topic, msgtype, typestore=ts)
-                 for k, (topic, msgtype) in TOPICS.items()}
-        for t, image, R_wb, p_wb in fly(scene, Trajectory(), rate, duration):
+                 for k, (topic, msgtype) in topics.items()}
+        for t, image, R_wb, p_wb in fly(scene, trajectory, rate, duration, target):
             ns = START_NS + int(round(t * 1e9))
             stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
             ok, jpeg = cv2.imencode('.jpg', image, [cv2.IMWRITE_JPEG_QUALITY, quality])
@@ -72,6 +93,11 @@ def write_bag(out: Path, config: Path, rate: float, duration: float | None, seed
                     p=np.array(info['p']), binning_x=0, binning_y=0, roi=roi),
                 'truth': _pose(T, Header(stamp=stamp, frame_id='world'), R_wb, p_wb),
             }
+            if target is not None:
+                (x, y), heading = target.path.pose(t)
+                msgs['target'] = _pose(T, Header(stamp=stamp, frame_id='world'),
+                                       Rotation.from_euler('z', heading).as_matrix(),
+                                       np.array([x, y, 0.0]))
             for key, msg in msgs.items():
                 writer.write(conns[key], ns, ts.serialize_cdr(msg, TOPICS[key][1]))
             frames += 1
@@ -97,6 +123,8 @@ def main(argv: list[str] | None = None) -> None:
                     help='seconds from the start (default: the whole 10 s trajectory)')
     ap.add_argument('--seed', type=int, default=0, help='sensor-noise seed')
     ap.add_argument('--quality', type=int, default=90, help='JPEG quality 1..100')
+    ap.add_argument('--follow', action='store_true',
+                    help='fly above the moving target of the follow scenario (truth/target)')
     ap.add_argument('--overwrite', action='store_true', help='replace an existing --out')
     args = ap.parse_args(argv)
     if not args.rate > 0:
@@ -112,11 +140,12 @@ def main(argv: list[str] | None = None) -> None:
             ap.error(f'--out: {args.out} exists (use --overwrite to replace it)')
         shutil.rmtree(args.out)
     try:
-        n = write_bag(args.out, args.config, args.rate, args.duration, args.seed, args.quality)
+        n = write_bag(args.out, args.config, args.rate, args.duration, args.seed, args.quality,
+                      args.follow)
     except (CalibrationError, ValueError) as exc:
         sys.exit(f'make_onboard_bag: {args.config}: {exc}')
     size = sum(f.stat().st_size for f in args.out.iterdir())
-    print(f'{args.out}: {n} frames x 3 topics, {size / 1e6:.1f} MB')
+    print(f'{args.out}: {n} frames x {4 if args.follow else 3} topics, {size / 1e6:.1f} MB')
 
 
 if __name__ == '__main__':

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from uav_vs.sim.camera_effects import GaussianNoise
+from uav_vs.sim.ground_target import GroundTarget
 from uav_vs.vision.camera import Camera
 from uav_vs.vision.plane_pose import camera_pose, plane_homography
 
@@ -155,11 +156,30 @@ class Trajectory:
         return np.column_stack([x_b, np.cross(z_b, x_b), z_b]), position
 
 
-def fly(scene: OnboardScene, trajectory: Trajectory, rate: float, duration: float | None = None
+def fly(scene: OnboardScene, trajectory: Trajectory, rate: float, duration: float | None = None,
+        target: GroundTarget | None = None
         ) -> Iterator[tuple[float, np.ndarray, np.ndarray, np.ndarray]]:
-    """Frames at `rate` Hz from the trajectory's start: (t s, BGR image, R_wb, p_wb)."""
+    """Frames at `rate` Hz from the trajectory's start: (t s, BGR image, R_wb, p_wb); the
+    target, if any, lies on the ground at its pose of time t."""
     end = trajectory.duration if duration is None else duration
     t0 = trajectory.waypoints[0].t
     for k in range(int(np.floor(end * rate + 1e-9)) + 1):
         R_wb, p_wb = trajectory.sample(t0 + k / rate)
-        yield k / rate, scene.render(R_wb, p_wb), R_wb, p_wb
+        decals = () if target is None else \
+            ((target.template, target.plane_from_template(k / rate)),)
+        yield k / rate, scene.render(R_wb, p_wb, decals=decals), R_wb, p_wb
+
+
+def following(target: GroundTarget, duration: float, offsets: tuple[tuple[float, ...], ...] = (
+        (0.0, 0.0, 1.5, 0.0), (0.12, -0.08, 1.35, 0.3), (-0.1, 0.1, 1.65, -0.2),
+        (0.08, 0.12, 1.45, 0.1), (-0.12, -0.06, 1.55, -0.3), (0.0, 0.0, 1.5, 0.0))
+        ) -> Trajectory:
+    """A flight above a moving target: a waypoint every duration / (len(offsets) - 1) s at
+    the target's position then, moved by (dx, dy) m, at height z, yaw north + dyaw rad."""
+    n = len(offsets) - 1
+    waypoints = []
+    for k, (dx, dy, z, dyaw) in enumerate(offsets):
+        t = duration * k / n
+        (x, y), _ = target.path.pose(t)
+        waypoints.append(Waypoint(t, (x + dx, y + dy, z), np.pi / 2 + dyaw))
+    return Trajectory(tuple(waypoints))
