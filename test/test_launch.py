@@ -136,10 +136,12 @@ def test_ground_launch_starts_the_station(launch, ros_node, args, processes):
     assert_stops_cleanly(graph, run, expected, terminal=True, processes=processes)
 
 
-def test_onboard_launch_in_a_namespace(launch, ros_node):
+@pytest.mark.parametrize('follow', [False, True])
+def test_onboard_launch_in_a_namespace(launch, ros_node, follow):
     graph = Graph(ros_node)
-    expected = {('/uav1', 'homography_pose_node'), ('/uav1', 'target_tracker_node')}
-    run = launch('onboard.launch.py', 'namespace:=uav1')
+    expected = {('/uav1', 'homography_pose_node'), ('/uav1', 'target_tracker_node'),
+                *([('/uav1', 'target_follower_node')] if follow else [])}
+    run = launch('onboard.launch.py', 'namespace:=uav1', *(['follow:=true'] if follow else []))
     graph.wait_up(expected, run)
     assert not {name for _, name in expected} & {name for ns, name in graph.nodes()
                                                   if ns != '/uav1'}
