@@ -24,6 +24,9 @@ by default the same host's next SERIAL port, PORT + 2).
 SITL gets config/ardupilot_gps_denied.parm (an attached SITL must run with it), EKF3
 navigates on the ground station's pose, which the relay forwards with the EKF origin;
 the summary adds what the EKF reported over the flight.
+`SCENARIO=follow` (`--scenario follow`, any vehicle) follows a target driving on the
+ground after the hold, with target_tracker_node and target_follower_node; the summary
+adds how close the vehicle stayed to it.
 
 `make demo BAG=<bag>` (`--bag`) replays a bag instead (the flight bag a closed-loop run
 records into the output folder, or bags/ground_trinocular, bags/onboard) through the
