@@ -44,6 +44,7 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
+from uav_vs.autopilot.frames import euler_to_quat
 from uav_vs.nodes.homography_pose_node import ONBOARD_PARAMS
 from uav_vs.ros.convert import (bgr_to_compressed, bgr_to_image, camera_info, ns_to_stamp,
                                 pose_to_msg, stamp_to_ns)
@@ -399,9 +400,8 @@ class SimWorldNode(Node):
         target = self.world.target_pose(state)
         if target is not None:
             (x, y), heading = target
-            self.target_truth_pub.publish(pose_to_msg(
-                np.array([x, y, 0.0]), np.array([0.0, 0.0, math.sin(heading / 2),
-                                                 math.cos(heading / 2)]), header))
+            self.target_truth_pub.publish(pose_to_msg(np.array([x, y, 0.0]),
+                                                      euler_to_quat(0, 0, heading), header))
         if frame is not None:
             self._deliver('onboard', header,
                           lambda: self.onboard_camera.publish(frame, header.stamp))

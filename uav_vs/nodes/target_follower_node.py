@@ -25,6 +25,7 @@ from rclpy.node import Node
 from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
 
+from uav_vs.autopilot.frames import euler_to_quat
 from uav_vs.control.follow import FollowConfig, TargetFollower
 from uav_vs.nodes.homography_pose_node import ONBOARD_PARAMS
 from uav_vs.ros.convert import (MessageError, msg_to_odometry, msg_to_pose, polygon_to_array,
@@ -128,10 +129,11 @@ class TargetFollowerNode(Node):
             return
         header = Header(stamp=msg.header.stamp, frame_id=self.world)
         x, y, z, yaw = step.setpoint
-        self.setpoint_pub.publish(pose_to_msg(np.array([x, y, z]), _yaw_quaternion(yaw), header))
+        self.setpoint_pub.publish(pose_to_msg(np.array([x, y, z]), euler_to_quat(0, 0, yaw),
+                                              header))
         gx, gy = step.target.position
         self.target_pub.publish(pose_to_msg(np.array([gx, gy, 0.0]),
-                                            _yaw_quaternion(step.target.heading), header))
+                                            euler_to_quat(0, 0, step.target.heading), header))
         self.counts['setpoints'] += 1
 
     def publish_diagnostics(self) -> None:
@@ -143,10 +145,6 @@ class TargetFollowerNode(Node):
     def _malformed(self, text: str) -> None:
         self.counts['malformed'] += 1
         self.warnings.warn(' '.join(text.split()[:2]), f'{text}; skipped')
-
-
-def _yaw_quaternion(yaw: float) -> np.ndarray:
-    return np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
 
 
 def main(args: list[str] | None = None) -> None:

@@ -60,6 +60,10 @@ class GroundTarget:
         h, w = self.template.shape[:2]
         return self.width * h / w
 
+    def decal(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """What OnboardScene.render draws of it at time t: (template, plane_from_template)."""
+        return self.template, self.plane_from_template(t)
+
     def plane_from_template(self, t: float) -> np.ndarray:
         """3x3 homography: template pixel (u, v, 1) -> ground point (x, y, 1) at time t."""
         (x, y), heading = self.path.pose(t)

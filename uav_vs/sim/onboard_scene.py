@@ -165,8 +165,7 @@ def fly(scene: OnboardScene, trajectory: Trajectory, rate: float, duration: floa
     t0 = trajectory.waypoints[0].t
     for k in range(int(np.floor(end * rate + 1e-9)) + 1):
         R_wb, p_wb = trajectory.sample(t0 + k / rate)
-        decals = () if target is None else \
-            ((target.template, target.plane_from_template(k / rate)),)
+        decals = () if target is None else (target.decal(k / rate),)
         yield k / rate, scene.render(R_wb, p_wb, decals=decals), R_wb, p_wb
 
 

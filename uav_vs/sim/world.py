@@ -150,8 +150,7 @@ class SimWorld:
         than `onboard_min_height` (on the ground it would look into the ground plane)."""
         if self.onboard_height(state) < self.onboard_min_height:
             return None
-        decals = () if self.target is None else \
-            ((self.target.template, self.target.plane_from_template(state.time - self._t0)),)
+        decals = () if self.target is None else (self.target.decal(state.time - self._t0),)
         return self.onboard.render(state.R, state.position, decals=decals)
 
     def target_pose(self, state: VehicleState) -> tuple[np.ndarray, float] | None:
