@@ -328,15 +328,10 @@ def score_follow(log: FlightLog) -> FollowScore | None:
     if start is None or end is None:
         return None
     target, truth = log.target_truth, log.truth
-    keep = (target.stamps >= start) & (target.stamps <= end)
-    vehicle = {int(s): i for i, s in enumerate(truth.stamps)}
-    keep &= np.array([int(s) in vehicle for s in target.stamps], bool)
-    rows = [vehicle[int(s)] for s in target.stamps[keep]]
+    keep, rows = same_stamps(target, truth, (target.stamps >= start) & (target.stamps <= end))
     error = np.linalg.norm(truth.positions[rows, :2] - target.positions[keep, :2], axis=1)
-    index = {int(s): i for i, s in enumerate(target.stamps)}
-    estimated = np.array([start <= s <= end and int(s) in index for s in log.target.stamps],
-                         bool)
-    rows = [index[int(s)] for s in log.target.stamps[estimated]]
+    estimated, rows = same_stamps(log.target, target, (log.target.stamps >= start)
+                                  & (log.target.stamps <= end))
     miss = np.linalg.norm(log.target.positions[estimated, :2] - target.positions[rows, :2],
                           axis=1)
     heading = np.degrees(wrap_angle(log.target.yaws[estimated] - target.yaws[rows]))
@@ -372,9 +367,7 @@ def score_source(track: PoseTrack, truth: PoseTrack, exact: bool, start_ns: int,
     with the truth of the same stamp (`exact`) or interpolated."""
     keep = (track.stamps >= start_ns) & (track.stamps <= end_ns)
     if exact:
-        index = {int(s): i for i, s in enumerate(truth.stamps)}
-        keep &= np.array([int(s) in index for s in track.stamps], bool)
-        rows = [index[int(s)] for s in track.stamps[keep]]
+        keep, rows = same_stamps(track, truth, keep)
         true_p, true_yaw = truth.positions[rows], truth.yaws[rows]
     else:
         keep &= within(truth, track.stamps)
@@ -426,6 +419,15 @@ def score_setpoint(event: SetpointEvent, log: FlightLog) -> SetpointScore:
                              nan)
     return SetpointScore(event.name, event.source, event.target, True, settle, rms(dp),
                          float(dp.max()), float(dp[-1]), float(dyaw.max()))
+
+
+def same_stamps(track: PoseTrack, truth: PoseTrack, keep: np.ndarray
+                ) -> tuple[np.ndarray, list[int]]:
+    """`keep` narrowed to the samples of `track` whose stamp `truth` has too, and the
+    rows of `truth` with those stamps, in the same order."""
+    index = {int(s): i for i, s in enumerate(truth.stamps)}
+    keep = keep & np.array([int(s) in index for s in track.stamps], bool)
+    return keep, [index[int(s)] for s in track.stamps[keep]]
 
 
 def within(track: PoseTrack, stamps: np.ndarray) -> np.ndarray:
