@@ -9,9 +9,13 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from uav_vs import dds_shm
+
+# Pause between stopping one process and the next (see stop).
+SETTLE_S = 0.1
 
 
 def executable(name: str) -> str:
@@ -39,21 +43,36 @@ def start(name: str, ros_args: list[str], log_dir: Path, label: str | None = Non
 
 
 def stop(procs: list[subprocess.Popen], timeout: float = 5.0) -> list[int]:
-    """SIGINT every process, then SIGTERM, then SIGKILL the ones still alive; return codes.
+    """Stop the processes one at a time, last started first, with SIGINT; then SIGTERM,
+    then SIGKILL the ones still alive; return codes.
 
-    The shared memory of a process that did not stop cleanly is removed (dds_shm).
+    One at a time, because Fast DDS can deadlock deleting a node's entities while it is
+    still removing a peer that has just left (eProsima/Fast-DDS#6502): a graph stopped all
+    at once then leaves a node hung in its teardown. Each process takes ~25 ms to stop,
+    and SETTLE_S lets the ones still running forget it before the next is stopped. The
+    shared memory of a process that did not stop cleanly is removed (dds_shm).
     """
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+    running = [p for p in procs if p.poll() is None]
+    for i, p in enumerate(reversed(running)):
+        if i:
+            time.sleep(SETTLE_S)
+        p.send_signal(signal.SIGINT)
+        _wait(p, timeout)
+    for sig in (signal.SIGTERM, signal.SIGKILL):
         alive = [p for p in procs if p.poll() is None]
         for p in alive:
             p.send_signal(sig)
         for p in alive:
-            try:
-                p.wait(timeout)
-            except subprocess.TimeoutExpired:
-                pass
+            _wait(p, timeout)
     dds_shm.remove_orphaned()
     return [p.returncode for p in procs]
+
+
+def _wait(proc: subprocess.Popen, timeout: float) -> None:
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        pass
 
 
 def failed_logs(procs: dict[str, subprocess.Popen], lines: int = 25) -> dict[str, str]:
