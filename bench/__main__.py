@@ -8,7 +8,7 @@ import sys
 
 SUITES = {
     'ground': ['ground', 'ground_detection', 'ground_latency'],
-    'onboard': ['onboard_homography', 'onboard_pose', 'onboard_template'],
+    'onboard': ['onboard_homography', 'onboard_pose', 'onboard_template', 'onboard_follow'],
     'fuzzy': ['fuzzy'],
     'mavlink': ['mavlink', 'mavlink_relay'],
     'relay': ['relay_command'],
