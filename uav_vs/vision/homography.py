@@ -113,13 +113,9 @@ def adaptive_trials(p: float, eps: float, s: int = SAMPLE_SIZE) -> int:
     return max(1, math.ceil(math.log(1.0 - p) / math.log1p(-good)))
 
 
-def _apply(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Map (N,2) points by H (...,3,3); returns (...,N,2) points and (...,N) w."""
-    q = pts @ H[..., :2, :2].swapaxes(-1, -2) + H[..., None, :2, 2]
-    w = pts @ H[..., 2, :2, None] + H[..., 2, 2, None, None]
-    w = w[..., 0]
-    with np.errstate(divide='ignore', invalid='ignore'):
-        return q / w[..., None], w
+def _quiet() -> np.errstate:
+    """No floating-point warnings: a point mapped to infinity (w = 0) is an infinite error."""
+    return np.errstate(divide='ignore', invalid='ignore', over='ignore')
 
 
 def _homogeneous(pts: np.ndarray) -> np.ndarray:
@@ -133,16 +129,16 @@ def _one_way_sq(H: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """d(b, H a)^2 for H (...,3,3), a (3,N) homogeneous, b (2,N): (...,N), inf unless w > 0.
 
     Computed in place on the one (...,3,N) product, taken as a single matrix product
-    (3B,3) x (3,N): the stacks of hypotheses are large.
+    (3B,3) x (3,N): the stacks of hypotheses are large. Callers ignore floating-point
+    warnings (`_quiet`): w = 0 gives inf or NaN, then infinity.
     """
     q = (H.reshape(-1, 3) @ a).reshape(*H.shape[:-1], -1)     # (...,3,N)
     w = q[..., 2:, :]
     p = q[..., :2, :]
-    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        p /= w
-        p -= b
-        p *= p
-        d2 = p[..., 0, :] + p[..., 1, :]
+    p /= w
+    p -= b
+    p *= p
+    d2 = p[..., 0, :] + p[..., 1, :]
     d2[~(w[..., 0, :] > 0)] = np.inf
     return d2
 
@@ -159,7 +155,8 @@ def _transfer_sq(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 def transfer_error(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Symmetric transfer error in px, sqrt(d(x', Hx)^2 + d(x, H^-1 x')^2) (Algorithm 1)."""
     src, dst = _check_points(src, dst, minimum=0)
-    return np.sqrt(_transfer_sq(np.asarray(H, float), src, dst))
+    with _quiet():
+        return np.sqrt(_transfer_sq(np.asarray(H, float), src, dst))
 
 
 class _Normalised:
@@ -186,6 +183,11 @@ class _Normalised:
                             [0.0, 0.0, 1.0]])
         self.src_h, self.dst_h = _homogeneous(self.src), _homogeneous(self.dst)
         self.A = _eq13_rows(self.src, self.dst)
+        # Errors in the input's units: rows x, y of Hn (of Hn^-1) scaled by 1/kd (1/ks)
+        # map onto the centred input points, so no error is rescaled after the fact.
+        self.to_dst_units = np.array([[1.0 / self.kd], [1.0 / self.kd], [1.0]])
+        self.to_src_units = np.array([[1.0 / self.ks], [1.0 / self.ks], [1.0]])
+        self.points = (self.src_h, self.dst_h, self.src_h[:2] / self.ks, self.dst_h[:2] / self.kd)
 
     def from_input(self, H: np.ndarray) -> np.ndarray:
         """H in the input's units to normalised coordinates, Hn[2,2] = 1."""
@@ -199,15 +201,17 @@ class _Normalised:
         H = Td_inv @ Hn @ self.Ts
         return H / H[2, 2]
 
-    def transfer_sq(self, Hn: np.ndarray, cols: slice | np.ndarray = slice(None)) -> np.ndarray:
+    def columns(self, cols: np.ndarray) -> tuple[np.ndarray, ...]:
+        """`points` of the matches cols only, for `transfer_sq`."""
+        return tuple(p[:, cols] for p in self.points)
+
+    def transfer_sq(self, Hn: np.ndarray, points: tuple[np.ndarray, ...] | None = None
+                    ) -> np.ndarray:
         """Squared symmetric transfer error in the input's units, of normalised Hn (...,3,3),
-        at the matches cols (all by default)."""
-        src_h, dst_h = self.src_h[:, cols], self.dst_h[:, cols]
-        d2 = _one_way_sq(Hn, src_h, dst_h[:2])
-        d2 /= self.kd ** 2
-        back = _one_way_sq(np.linalg.inv(Hn), dst_h, src_h[:2])
-        back /= self.ks ** 2
-        d2 += back
+        at all matches or at `points` (from `columns`)."""
+        src_h, dst_h, src_c, dst_c = points or self.points
+        d2 = _one_way_sq(Hn * self.to_dst_units, src_h, dst_c)
+        d2 += _one_way_sq(np.linalg.inv(Hn) * self.to_src_units, dst_h, src_c)
         return d2
 
 
@@ -285,8 +289,9 @@ def refine_robust(H: np.ndarray, src: np.ndarray, dst: np.ndarray, threshold_px:
     """
     data = _Normalised(*_check_points(src, dst))
     Hn = data.from_input(np.asarray(H, float))
-    return data.to_input(_refine(Hn, data, data.transfer_sq(Hn), threshold_px,
-                                 iterations, tol_px)[0])
+    with _quiet():
+        return data.to_input(_refine(Hn, data, data.transfer_sq(Hn), threshold_px,
+                                     iterations, tol_px)[0])
 
 
 def _refine(Hn: np.ndarray, data: _Normalised, d2: np.ndarray, threshold: float,
@@ -418,7 +423,8 @@ def _ransac(data: _Normalised, threshold: float, confidence: float, max_trials: 
     best_H, best_score = None, np.inf
     needed, trials, batch = max_trials, 0, _FIRST_BATCH
     most = max(_BATCH, _BATCH_ERRORS // n)
-    pre = rng.integers(0, n, _PRESCORE) if n > _PRESCORE and not lmeds else None
+    pre = (data.columns(rng.integers(0, n, _PRESCORE)) if n > _PRESCORE and not lmeds
+           else None)
     while trials < needed:
         size = min(batch, needed - trials)
         trials = trials + size
@@ -458,36 +464,75 @@ def _ransac(data: _Normalised, threshold: float, confidence: float, max_trials: 
     return (best_H, best_d2, threshold), trials
 
 
+def _spread(xy: np.ndarray) -> tuple[float, float]:
+    """Minor and major spread (up to one common scale) of (2,N) points about their mean."""
+    d = xy - xy.mean(1)[:, None]
+    (a, b), (_, c) = (d @ d.T).tolist()
+    mid, half = (a + c) / 2.0, math.hypot((a - c) / 2.0, b)
+    return math.sqrt(max(mid - half, 0.0)), math.sqrt(mid + half)
+
+
 def _degenerate(H: np.ndarray, src: np.ndarray, dst: np.ndarray, max_scale: float,
                 mirror: bool) -> str:
     """Why H (fitted on these inliers) is unusable, or '' if it is sound.
 
-    Every check is relative to the data's own scale, so it holds in any unit.
+    Every check is relative to the data's own scale, so it holds in any unit. The points
+    are taken as rows x and y: numpy reduces an (N,2) array down its columns slowly.
     """
     if not np.isfinite(H).all() or abs(np.linalg.det(H)) < 1e-12 * abs(H).max() ** 3:
         return 'H is singular or not finite'
-    for name, pts in (('src', src), ('dst', dst)):
-        d = pts - pts.mean(0)
-        minor, major = np.sqrt(np.maximum(np.linalg.eigvalsh(d.T @ d / len(pts)), 0.0))
+    src, dst = np.ascontiguousarray(src.T), np.ascontiguousarray(dst.T)
+    for name, xy in (('src', src), ('dst', dst)):
+        minor, major = _spread(xy)
         if not minor > _FLAT * major:
             return (f'inliers are collinear in {name} '
                     f'(minor spread {minor / max(major, 1e-300):.2g} of the major)')
-    lo, hi = src.min(0), src.max(0)
-    box = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
-    quad, w = _apply(H, box)
-    if (w <= 0).any():
+    (x0, y0), (x1, y1) = src.min(1), src.max(1)
+    x, y, w = (H @ [[x0, x1, x1, x0], [y0, y0, y1, y1], [1.0, 1.0, 1.0, 1.0]]).tolist()
+    if not min(w) > 0:
         return 'inlier region maps across the horizon'
-    e = np.roll(quad, -1, 0) - quad
-    turn = e[:, 0] * np.roll(e, -1, 0)[:, 1] - e[:, 1] * np.roll(e, -1, 0)[:, 0]
-    if not ((turn > 0).all() or (mirror and (turn < 0).all())):
+    x, y = [a / c for a, c in zip(x, w)], [b / c for b, c in zip(y, w)]
+    nxt = (1, 2, 3, 0)
+    ex = [x[j] - x[i] for i, j in enumerate(nxt)]
+    ey = [y[j] - y[i] for i, j in enumerate(nxt)]
+    turn = [ex[i] * ey[j] - ey[i] * ex[j] for i, j in enumerate(nxt)]
+    if not (min(turn) > 0 or (mirror and max(turn) < 0)):
         return 'inlier region maps to a flipped or non-convex quad'
-    nxt = np.roll(quad, -1, 0)
-    area = 0.5 * abs((quad[:, 0] * nxt[:, 1] - nxt[:, 0] * quad[:, 1]).sum())
-    dlo, dhi = dst.min(0), dst.max(0)
-    area /= max(float(np.prod(dhi - dlo)), 1e-300)
+    area = 0.5 * abs(sum(x[i] * y[j] - x[j] * y[i] for i, j in enumerate(nxt)))
+    (u0, v0), (u1, v1) = dst.min(1), dst.max(1)
+    area /= max((u1 - u0) * (v1 - v0), 1e-300)
     if not max_scale ** -2 <= area <= max_scale ** 2:
         return f'inlier region maps out of proportion to the inliers (area ratio {area:.3g})'
     return ''
+
+
+def _fit(src: np.ndarray, dst: np.ndarray, method: str, threshold: float, confidence: float,
+         max_trials: int, rng: np.random.Generator | int | None, mirror: bool, refine_from: int
+         ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, int, str]:
+    """H (input units, H[2,2] = 1), its inliers, all squared errors and the trials drawn,
+    or H None and why. 'ransac' and 'lmeds' end with `refine_robust` when refine_from > 0
+    and at least refine_from of their matches are inliers."""
+    none = np.zeros(len(src), bool)
+    with _quiet():
+        if method in _OPENCV:
+            H, mask = cv2.findHomography(src, dst, _OPENCV[method], threshold,
+                                         maxIters=max_trials, confidence=confidence)
+            if H is None:
+                return None, none, none, 0, 'OpenCV found no homography'
+            H = H / H[2, 2]
+            return H, mask.ravel().astype(bool), _transfer_sq(H, src, dst), 0, ''
+        data = _Normalised(src, dst)
+        best, trials = _ransac(data, threshold, confidence, max_trials,
+                               np.random.default_rng(rng), method == 'lmeds', mirror)
+        if best is None:
+            return (None, none, none, trials,
+                    'no usable sample: every one collinear or orientation-flipped')
+        Hn, d2, threshold = best
+        inl = d2 < threshold ** 2
+        if refine_from and inl.sum() >= refine_from:   # too few inliers: rejected, not refined
+            Hn, d2 = _refine(Hn, data, d2, threshold)
+            inl = d2 < threshold ** 2
+        return data.to_input(Hn), inl, d2, trials, ''
 
 
 def estimate_homography(src: np.ndarray, dst: np.ndarray, method: str = DEFAULT_METHOD,
@@ -514,33 +559,14 @@ def estimate_homography(src: np.ndarray, dst: np.ndarray, method: str = DEFAULT_
         raise ValueError('need threshold_px > 0, max_trials >= 1 and min_inliers >= 4')
     src, dst = _check_points(src, dst, minimum=0)
     n = len(src)
-    none = np.zeros(n, bool)
     need = max(min_inliers, math.ceil(min_inlier_ratio * n))
     if n < need:
-        return HomographyResult(False, None, none, 0, math.nan,
+        return HomographyResult(False, None, np.zeros(n, bool), 0, math.nan,
                                 f'{n} matches, fewer than the {need} inliers required')
-    if method in _OPENCV:
-        H, mask = cv2.findHomography(src, dst, _OPENCV[method], threshold_px,
-                                     maxIters=max_trials, confidence=confidence)
-        trials = 0
-        inl = mask.ravel().astype(bool) if H is not None else none
-        d2 = _transfer_sq(H / H[2, 2], src, dst) if H is not None else None
-    else:
-        data = _Normalised(src, dst)
-        best, trials = _ransac(data, threshold_px, confidence, max_trials,
-                               np.random.default_rng(rng), method == 'lmeds', mirror)
-        if best is None:
-            return HomographyResult(False, None, none, trials, math.nan,
-                                    'no usable sample: every one collinear or orientation-flipped')
-        Hn, d2, threshold = best
-        inl = d2 < threshold ** 2
-        if refine and inl.sum() >= need:      # too few inliers: rejected, not refined
-            Hn, d2 = _refine(Hn, data, d2, threshold)
-            inl = d2 < threshold ** 2
-        H = data.to_input(Hn)
+    H, inl, d2, trials, reason = _fit(src, dst, method, threshold_px, confidence, max_trials,
+                                      rng, mirror, need if refine else 0)
     if H is None:
-        return HomographyResult(False, None, none, trials, math.nan, 'OpenCV found no homography')
-    H = H / H[2, 2]
+        return HomographyResult(False, None, inl, trials, math.nan, reason)
     count = int(inl.sum())
     rms = math.sqrt(d2[inl].mean()) if count else math.nan
     if count < need:
