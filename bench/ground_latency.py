@@ -3,8 +3,10 @@
 Three camera-driver processes, one per camera, publish frames rendered by the
 simulator as raw bgr8 images (sensor-data QoS), each stamped with its publish time, to
 the ground station; a probe process takes the latency of each pose (arrival time minus
-its stamp), as a controller would see it, and the CPU time the station's processes
-took meanwhile. The station runs in each layout (uav_vs.flight.ground_replay.LAYOUTS: one
+its stamp) on the default executor, as the fuzzy_controller_node takes `ground/pose`,
+and the CPU time the station's processes took meanwhile. Each pose is matched by its
+stamp to the frame it came from, so `poses` counts the frames of the measured window
+(WARMUP_S to SECONDS) that got one, out of `expected_poses`. The station runs in each layout (uav_vs.flight.ground_replay.LAYOUTS: one
 ground_station process, or a process per node) with each executor
 (uav_vs.ros.node_main.EXECUTORS), and the one process with its landmarks through topics
 instead of handed over (ground_station --landmark-topics), one after the other in the
@@ -22,6 +24,7 @@ pose|landmarks LAYOUT CONFIG RATE [STATION_ARGS]` is one measurement, `... drive
 START CONFIG RATE` one camera driver.
 """
 import copy
+import math
 import os
 import subprocess
 import sys
@@ -33,7 +36,6 @@ import numpy as np
 import rclpy
 import yaml
 from geometry_msgs.msg import PolygonStamped, PoseStamped
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
@@ -94,23 +96,39 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
+def frames_in_window(stamps_ns: np.ndarray, start_ns: int, rate: float) -> np.ndarray:
+    """The driver frame index of each stamp (frame k is due at start + k / rate and
+    stamped when published, at most a tenth of a period early and nine tenths late),
+    -1 outside the measured frames: those due from WARMUP_S to SECONDS after start."""
+    k = np.floor((stamps_ns - start_ns) * 1e-9 * rate + 0.1).astype(int)
+    first, end = math.ceil(WARMUP_S * rate), math.ceil(SECONDS * rate)
+    return np.where((k >= first) & (k < end), k, -1)
+
+
+def expected_frames(rate: float) -> int:
+    """Frames the drivers publish in the measured window (see frames_in_window)."""
+    return math.ceil(SECONDS * rate) - math.ceil(WARMUP_S * rate)
+
+
 def measure(log_dir: Path, what: str, layout: str, config: Path, rate: float,
-            station_args: list[str] = ()) -> tuple[np.ndarray, float]:
+            station_args: list[str] = ()) -> tuple[np.ndarray, np.ndarray, float]:
     """Latencies (ms) of one run, of every `ground/pose` (what='pose') or of every
-    camera's `landmarks` (what='landmarks', the first hop), and the CPU the station's
-    processes took while they were measured, in % of one core."""
+    camera's `landmarks` (what='landmarks', the first hop) of the measured frames, the
+    frame each came from, and the CPU the station's processes took while they were
+    measured, in % of one core. The probe takes them on the default executor, as the
+    fuzzy_controller_node takes `ground/pose`."""
     cameras = _cameras(config)
     procs = list(ground_graph(config, cameras, log_dir, layout=layout,
                               station_args=station_args).values())
     rclpy.init()
     node = rclpy.create_node('latency_probe')
-    executor = SingleThreadedExecutor()
+    executor = EXECUTORS[DEFAULT_EXECUTOR]()
     executor.add_node(node)
     clock = node.get_clock()
-    ages: list[float] = []
+    received: list[tuple[int, int]] = []
 
     def on_message(msg) -> None:
-        ages.append((clock.now().nanoseconds - stamp_to_ns(msg.header.stamp)) / 1e6)
+        received.append((clock.now().nanoseconds, stamp_to_ns(msg.header.stamp)))
 
     if what == 'pose':
         node.create_subscription(PoseStamped, 'ground/pose', on_message, 100)
@@ -125,11 +143,11 @@ def measure(log_dir: Path, what: str, layout: str, config: Path, rate: float,
                 and node.count_publishers('ground/pose') > 0)
     _spin_until(executor, station_up, time.monotonic() + 60.0)
     start = time.monotonic() + 6.0
+    start_ns = clock.now().nanoseconds + int((start - time.monotonic()) * 1e9)
     drivers = [subprocess.Popen([sys.executable, '-m', 'bench.ground_latency', 'driver', c,
                                  repr(start), str(config), repr(rate)]) for c in cameras]
     try:
         _spin_until(executor, lambda: time.monotonic() >= start + WARMUP_S, start + WARMUP_S + 1)
-        ages.clear()
         cpu0, t0 = sum(_cpu_s(p.pid) for p in procs), time.monotonic()
         _spin_until(executor, lambda: time.monotonic() >= start + SECONDS, start + SECONDS)
         cpu = (sum(_cpu_s(p.pid) for p in procs) - cpu0) / (time.monotonic() - t0) * 100
@@ -141,12 +159,17 @@ def measure(log_dir: Path, what: str, layout: str, config: Path, rate: float,
         node.destroy_node()
         rclpy.shutdown()
         graph.stop(procs)
-    return np.array(ages), cpu
+    arrival, stamp = np.array(received, np.int64).reshape(-1, 2).T
+    frames = frames_in_window(stamp, start_ns, rate)
+    keep = frames >= 0
+    return (arrival - stamp)[keep] / 1e6, frames[keep], cpu
 
 
 def _run(what: str, layout: str, executor: str, config: Path | None = None,
-         rate: float = RATE_HZ, station_args: tuple[str, ...] = ()) -> tuple[np.ndarray, float]:
-    """One measurement in a process of its own, its station on `executor`."""
+         rate: float = RATE_HZ, station_args: tuple[str, ...] = ()
+         ) -> tuple[np.ndarray, int, float]:
+    """One measurement in a process of its own, its station on `executor`: latencies
+    (ms), how many of the measured frames got one, CPU %."""
     shm = str(Path(__file__).resolve().parents[1] / 'config' / 'fastdds_shm.xml')
     env = dict(os.environ, FASTRTPS_DEFAULT_PROFILES_FILE=shm, **{EXECUTOR_ENV: executor})
     with tempfile.TemporaryDirectory() as tmp:
@@ -156,11 +179,11 @@ def _run(what: str, layout: str, executor: str, config: Path | None = None,
                         *station_args],
                        env=env, check=True)
         found = np.load(out)
-        ages, cpu = found['ages'], float(found['cpu'])
+        ages, frames, cpu = found['ages'], found['frames'], float(found['cpu'])
     if not len(ages):
         raise RuntimeError(f'ground/latency: no {what} received in {SECONDS} s with '
                            f'{layout}/{executor} (is the machine busy with other jobs?)')
-    return ages, cpu
+    return ages, len(np.unique(frames)), cpu
 
 
 def four_cameras(path: Path) -> Path:
@@ -178,17 +201,17 @@ def four_cameras(path: Path) -> Path:
 
 
 def case(layout: str, executor: str, station_args: tuple[str, ...],
-         ref: tuple[np.ndarray, float]) -> None:
+         ref: tuple[np.ndarray, int, float]) -> None:
     """One layout on one executor, next to the reference run."""
-    ages, cpu = _run('pose', layout, executor, station_args=station_args)
-    expected = int((SECONDS - WARMUP_S) * RATE_HZ)
+    ages, poses, cpu = _run('pose', layout, executor, station_args=station_args)
+    expected = expected_frames(RATE_HZ)
     name = '/'.join([layout, executor, *(a.strip('-') for a in station_args)])
     meets = (np.percentile(ages, 95) <= TARGET_P95_MS and np.median(ages) <= TARGET_MEDIAN_MS
-             and len(ages) >= expected)
+             and poses == expected)
     report('ground', f'ground/latency/{name}', ages,
-           reference='/'.join(REFERENCE), ref_ms=ref[0], poses=len(ages),
-           expected_poses=expected, ref_poses=len(ref[0]), cpu_percent=round(cpu),
-           ref_cpu_percent=round(ref[1]), meets_target=bool(meets))
+           reference='/'.join(REFERENCE), ref_ms=ref[0], poses=poses,
+           expected_poses=expected, ref_poses=ref[1], cpu_percent=round(cpu),
+           ref_cpu_percent=round(ref[2]), meets_target=bool(meets))
 
 
 def latency(cases: list[tuple[str, str, tuple[str, ...]]]) -> None:
@@ -203,14 +226,14 @@ def main(argv: list[str] = ()) -> None:
         return
     latency([*((layout, executor, ()) for layout in LAYOUTS for executor in EXECUTORS),
              ('one_process', DEFAULT_EXECUTOR, ('--landmark-topics',))])
-    hops, _ = _run('landmarks', DEFAULT_LAYOUT, DEFAULT_EXECUTOR)
+    hops, _, _ = _run('landmarks', DEFAULT_LAYOUT, DEFAULT_EXECUTOR)
     report('ground', 'ground/latency/landmarks', hops, layout=DEFAULT_LAYOUT,
            executor=DEFAULT_EXECUTOR)
     with tempfile.TemporaryDirectory() as tmp:
         config = four_cameras(Path(tmp) / 'four_cameras.yaml')
-        ages, cpu = _run('pose', DEFAULT_LAYOUT, DEFAULT_EXECUTOR, config, 60.0)
-    report('ground', 'ground/latency/4cams_60hz', ages, poses=len(ages),
-           expected_poses=int((SECONDS - WARMUP_S) * 60.0), cpu_percent=round(cpu),
+        ages, poses, cpu = _run('pose', DEFAULT_LAYOUT, DEFAULT_EXECUTOR, config, 60.0)
+    report('ground', 'ground/latency/4cams_60hz', ages, poses=poses,
+           expected_poses=expected_frames(60.0), cpu_percent=round(cpu),
            layout=DEFAULT_LAYOUT, executor=DEFAULT_EXECUTOR)
 
 
@@ -223,6 +246,6 @@ if __name__ == '__main__':
         driver(sys.argv[2], float(sys.argv[3]), Path(sys.argv[4]), float(sys.argv[5]))
     else:
         with tempfile.TemporaryDirectory(prefix='uav_vs_latency_') as logs:
-            ages, cpu = measure(Path(logs), sys.argv[3], sys.argv[4], Path(sys.argv[5]),
-                                float(sys.argv[6]), sys.argv[7:])
-            np.savez(sys.argv[2], ages=ages, cpu=cpu)
+            ages, frames, cpu = measure(Path(logs), sys.argv[3], sys.argv[4],
+                                        Path(sys.argv[5]), float(sys.argv[6]), sys.argv[7:])
+            np.savez(sys.argv[2], ages=ages, frames=frames, cpu=cpu)
