@@ -6,8 +6,9 @@ the ground station; a probe process takes the latency of each pose (arrival time
 its stamp) on the default executor, as the fuzzy_controller_node takes `ground/pose`,
 and the CPU time the station's processes took meanwhile. Each pose is matched by its
 stamp to the frame it came from, so `poses` counts the frames of the measured window
-(WARMUP_S to SECONDS) that got one, out of `expected_poses`. The station runs in each layout (uav_vs.flight.ground_replay.LAYOUTS: one
-ground_station process, or a process per node) with each executor
+(WARMUP_S to SECONDS) that got one, out of `expected_poses`. The station runs in each
+layout (uav_vs.flight.ground_replay.LAYOUTS: one ground_station process, or a process
+per node) with each executor
 (uav_vs.ros.node_main.EXECUTORS), and the one process with its landmarks through topics
 instead of handed over (ground_station --landmark-topics), one after the other in the
 same run; the reference of
@@ -96,18 +97,23 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
+def _window(rate: float) -> range:
+    """The measured frames: those due from WARMUP_S to SECONDS after the drivers' start."""
+    return range(math.ceil(WARMUP_S * rate), math.ceil(SECONDS * rate))
+
+
 def frames_in_window(stamps_ns: np.ndarray, start_ns: int, rate: float) -> np.ndarray:
     """The driver frame index of each stamp (frame k is due at start + k / rate and
     stamped when published, at most a tenth of a period early and nine tenths late),
-    -1 outside the measured frames: those due from WARMUP_S to SECONDS after start."""
+    -1 outside the measured frames (_window)."""
     k = np.floor((stamps_ns - start_ns) * 1e-9 * rate + 0.1).astype(int)
-    first, end = math.ceil(WARMUP_S * rate), math.ceil(SECONDS * rate)
-    return np.where((k >= first) & (k < end), k, -1)
+    window = _window(rate)
+    return np.where((k >= window.start) & (k < window.stop), k, -1)
 
 
 def expected_frames(rate: float) -> int:
-    """Frames the drivers publish in the measured window (see frames_in_window)."""
-    return math.ceil(SECONDS * rate) - math.ceil(WARMUP_S * rate)
+    """Frames the drivers publish in the measured window."""
+    return len(_window(rate))
 
 
 def measure(log_dir: Path, what: str, layout: str, config: Path, rate: float,
