@@ -73,6 +73,12 @@ def test_polygon_pose_twist_and_stamp_round_trips():
     assert cv.stamp_to_ns(cv.ns_to_stamp(ns)) == ns
 
 
+def test_a_message_in_another_frame_is_refused_naming_both_frames():
+    cv.check_frame(Header(frame_id='world'), 'world')
+    with pytest.raises(cv.MessageError, match="^frame 'map', expected 'world'$"):
+        cv.check_frame(Header(frame_id='map'), 'world')
+
+
 @pytest.mark.parametrize('encoding, channels, frame_id', [('bgr8', 3, 'cam1_optical'),
                                                           ('mono8', 1, ''), ('rgba8', 4, 'abc')])
 def test_serialized_image_is_read_in_place_as_rclpy_reads_it(encoding, channels, frame_id):

@@ -42,8 +42,8 @@ from std_srvs.srv import SetBool
 
 from uav_vs.control.controllers import PoseController, TrackingController, config_from_params
 from uav_vs.control.servo import Limits, Now, ServoLoop, Timing, Verdict
-from uav_vs.ros.convert import (MessageError, msg_to_pose, polygon_to_array, stamp_to_ns,
-                                twist_to_msg, yaw_of)
+from uav_vs.ros.convert import (MessageError, check_frame, msg_to_pose, polygon_to_array,
+                                stamp_to_ns, twist_to_msg, yaw_of)
 from uav_vs.ros.fuzzy_params import fuzzy_params
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, ThrottledWarnings, run
 from uav_vs.ros.params import LiveParams, Param, T, declare
@@ -253,10 +253,8 @@ class FuzzyControllerNode(Node):
     def _pose(self, msg: PoseStamped, what: str) -> tuple[np.ndarray, float] | None:
         """(position, yaw) of a pose in the world frame with a rotation for orientation;
         None (counted as malformed) otherwise."""
-        if msg.header.frame_id != self.world:
-            self._malformed(f'{what}: frame {msg.header.frame_id!r}, expected {self.world!r}')
-            return None
         try:
+            check_frame(msg.header, self.world)
             position, q = msg_to_pose(msg)
         except MessageError as err:
             self._malformed(f'{what}: {err}')
@@ -265,7 +263,7 @@ class FuzzyControllerNode(Node):
 
     def _malformed(self, text: str) -> None:
         self.counts['malformed'] += 1
-        self.warnings.warn(' '.join(text.split()[:2]), f'{text}; skipped')   # kind: first words
+        self.warnings.skipped(text)
 
 
 def main(args: list[str] | None = None) -> None:

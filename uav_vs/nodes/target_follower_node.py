@@ -28,8 +28,8 @@ from std_msgs.msg import Header
 from uav_vs.autopilot.frames import euler_to_quat
 from uav_vs.control.follow import FollowConfig, TargetFollower
 from uav_vs.nodes.homography_pose_node import ONBOARD_PARAMS
-from uav_vs.ros.convert import (MessageError, msg_to_odometry, msg_to_pose, polygon_to_array,
-                                pose_to_msg, stamp_to_ns)
+from uav_vs.ros.convert import (MessageError, check_frame, msg_to_odometry, msg_to_pose,
+                                polygon_to_array, pose_to_msg, stamp_to_ns)
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, ThrottledWarnings, run
 from uav_vs.ros.params import Param, T, declare
 from uav_vs.vision.onboard_config import load_onboard_config
@@ -88,10 +88,8 @@ class TargetFollowerNode(Node):
             f"{self.resolve_topic_name('setpoint')} at {p['follow.height']:g} m")
 
     def on_pose(self, msg: PoseStamped) -> None:
-        if msg.header.frame_id != self.world:
-            self._malformed(f'pose: frame {msg.header.frame_id!r}, expected {self.world!r}')
-            return
         try:
+            check_frame(msg.header, self.world)
             position, q = msg_to_pose(msg)
         except MessageError as err:
             self._malformed(f'pose: {err}')
@@ -104,10 +102,8 @@ class TargetFollowerNode(Node):
                               Rotation.from_quat(q).as_matrix(), position)
 
     def on_attitude(self, msg: Odometry) -> None:
-        if msg.header.frame_id != self.world:
-            self._malformed(f'attitude: frame {msg.header.frame_id!r}, expected {self.world!r}')
-            return
         try:
+            check_frame(msg.header, self.world)
             _, q, _, _ = msg_to_odometry(msg)
         except MessageError as err:
             self._malformed(f'attitude: {err}')
@@ -144,7 +140,7 @@ class TargetFollowerNode(Node):
 
     def _malformed(self, text: str) -> None:
         self.counts['malformed'] += 1
-        self.warnings.warn(' '.join(text.split()[:2]), f'{text}; skipped')
+        self.warnings.skipped(text)
 
 
 def main(args: list[str] | None = None) -> None:

@@ -163,6 +163,12 @@ def pose_to_msg(position: np.ndarray, quaternion_xyzw: np.ndarray, header: Heade
     return msg
 
 
+def check_frame(header: Header, frame: str) -> None:
+    """MessageError unless the message is stamped in `frame` (its header's frame_id)."""
+    if header.frame_id != frame:
+        raise MessageError(f'frame {header.frame_id!r}, expected {frame!r}')
+
+
 def msg_to_pose(msg: PoseStamped) -> tuple[np.ndarray, np.ndarray]:
     """PoseStamped to (position (3,), unit quaternion xyzw (4,)); see unit_quaternion."""
     p, q = msg.pose.position, msg.pose.orientation

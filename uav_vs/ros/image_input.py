@@ -202,8 +202,7 @@ class ImageInput:
     def _malformed(self, err: Exception) -> None:
         self._counts['malformed'] += 1
         text = str(err) if isinstance(err, MessageError) else error_text(err)
-        # One warning per kind of defect: the first words of the message name it.
-        self._warnings.warn(' '.join(text.split()[:2]), f'{text}; skipped')
+        self._warnings.skipped(text)
 
     def _failed(self, stamp: int, err: Exception) -> None:
         self._counts['errors'] += 1

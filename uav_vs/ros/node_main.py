@@ -240,3 +240,7 @@ class ThrottledWarnings:
         if now >= self._next.get(kind, 0.0):
             self._next[kind] = now + self._period
             self._node.get_logger().warn(text)
+
+    def skipped(self, text: str) -> None:
+        """'<text>; skipped' for a bad message, its kind named by the first two words."""
+        self.warn(' '.join(text.split()[:2]), f'{text}; skipped')
