@@ -554,6 +554,22 @@ def test_px4_offboard_takeoff_body_frame_and_land():
     px4.conn.close()
 
 
+def test_a_late_acceptance_is_not_hidden_by_the_refusal_of_its_retry():
+    """The first takeoff's ACK came late, so the session sent it again; the autopilot
+    accepted the first and refuses the repeat (already taking off). When both ACKs are
+    in before the waiting call looks, the command was carried out: ACCEPTED stands."""
+    takeoff = mavlink.MAV_CMD_NAV_TAKEOFF
+    with Session(SessionConfig(connection='udpout:127.0.0.1:9')) as session, session._cond:
+        session._waiting.add(takeoff)
+        for result in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_TEMPORARILY_REJECTED):
+            session._on_ack(mavlink.MAVLink_command_ack_message(takeoff, result, 0, 0, 0, 0))
+        assert session._acks[takeoff] == mavlink.MAV_RESULT_ACCEPTED
+        session._acks.clear()      # a refusal on its own is still one
+        session._on_ack(mavlink.MAVLink_command_ack_message(
+            takeoff, mavlink.MAV_RESULT_TEMPORARILY_REJECTED, 0, 0, 0, 0))
+        assert session._acks[takeoff] == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+
+
 def test_the_same_calls_fly_the_simulated_px4():
     """Against the simulator's PX4: set_guided streams setpoints before it asks for
     OFFBOARD, arming happens in OFFBOARD, the takeoff ends in AUTO.LOITER (velocity is

@@ -960,7 +960,11 @@ class Session:
         if target not in ((0, 0), (self.config.source_system, self.config.source_component)):
             return
         if msg.command in self._waiting:
-            self._acks[msg.command] = msg.result
+            # A retry sent because the first ACK was late is refused by an autopilot
+            # already carrying the command out: its refusal may arrive right after the
+            # first copy's ACCEPTED, before the caller has seen it, and must not hide it.
+            if self._acks.get(msg.command) != mavlink.MAV_RESULT_ACCEPTED:
+                self._acks[msg.command] = msg.result
             self._cond.notify_all()
         elif msg.result != mavlink.MAV_RESULT_ACCEPTED:
             log.warning('%s refused: %s', _enum_name('MAV_CMD', msg.command),
