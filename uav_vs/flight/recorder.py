@@ -5,7 +5,6 @@ services called.
 Used by uav_vs.flight.scenario (missions in closed loop) and uav_vs.flight.replay (a recorded
 flight through the open-loop graph).
 """
-import math
 import threading
 import time
 
@@ -21,7 +20,7 @@ from std_msgs.msg import Header
 
 from uav_vs.flight.report import CommandTrack, FlightLog, PoseTrack
 from uav_vs.ros.convert import (MessageError, msg_to_odometry, msg_to_pose, msg_to_twist,
-                                stamp_to_ns, yaw_of)
+                                pose_to_msg, stamp_to_ns, yaw_of, yaw_quaternion)
 
 RELAY = '/mavlink_relay_node'
 
@@ -102,10 +101,8 @@ class FlightRecorder:
                     self.ekf.append(ekf_row(self.relay))
 
     def set_setpoint(self, position: tuple[float, float, float], yaw: float) -> None:
-        msg = PoseStamped(header=Header(stamp=self.node.get_clock().now().to_msg(),
-                                        frame_id='world'))
-        msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = map(float, position)
-        msg.pose.orientation.z, msg.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+        msg = pose_to_msg(np.array(position, float), yaw_quaternion(yaw),
+                          Header(stamp=self.node.get_clock().now().to_msg(), frame_id='world'))
         self.setpoint = msg
         self.setpoint_pub.publish(msg)
 

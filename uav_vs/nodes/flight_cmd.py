@@ -33,7 +33,7 @@ from rclpy.utilities import remove_ros_args
 from std_msgs.msg import Header
 from std_srvs.srv import SetBool, Trigger
 
-from uav_vs.ros.convert import pose_to_msg
+from uav_vs.ros.convert import pose_to_msg, yaw_quaternion
 
 # Command -> (service type, service name relative to --ns, SetBool data or None, help).
 SERVICES = {
@@ -103,8 +103,7 @@ def setpoint_msg(node: Node, x: float, y: float, z: float, yaw_deg: float) -> Po
     """The setpoint pose in world, stamped now."""
     yaw = math.radians(yaw_deg)
     header = Header(stamp=node.get_clock().now().to_msg(), frame_id='world')
-    return pose_to_msg(np.array([x, y, z]), np.array([0.0, 0.0, math.sin(yaw / 2),
-                                                      math.cos(yaw / 2)]), header)
+    return pose_to_msg(np.array([x, y, z]), yaw_quaternion(yaw), header)
 
 
 def publish_setpoint(node: Node, args: argparse.Namespace) -> str:

@@ -216,6 +216,11 @@ def yaw_of(quaternion_xyzw: np.ndarray) -> float:
     return math.atan2(2 * (w * z + x * y), w * w + x * x - y * y - z * z)
 
 
+def yaw_quaternion(yaw: float) -> np.ndarray:
+    """The xyzw unit quaternion of a rotation by `yaw` [rad] about z (the inverse of yaw_of)."""
+    return np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
+
+
 def _quaternion_norm2(x: float, y: float, z: float, w: float) -> float:
     """|q|^2, checked to lie in [0.1^2, 10^2] (NaN and inf fail the comparison)."""
     n2 = x * x + y * y + z * z + w * w
