@@ -66,7 +66,8 @@ def test_polygon_pose_twist_and_stamp_round_trips():
     pos, quat = cv.msg_to_pose(cv.pose_to_msg(np.array([1.0, -2.0, 3.0]), q, Header()))
     assert np.array_equal(pos, [1.0, -2.0, 3.0]) and np.array_equal(quat, q)
     assert cv.yaw_of(q) == pytest.approx(0.8)
-    assert np.allclose(cv.yaw_quaternion(0.8), q) and cv.yaw_of(cv.yaw_quaternion(-3.0)) == pytest.approx(-3.0)
+    assert np.allclose(cv.yaw_quaternion(0.8), q)
+    assert cv.yaw_of(cv.yaw_quaternion(-3.0)) == pytest.approx(-3.0)
     lin, ang = cv.msg_to_twist(cv.twist_to_msg(np.array([1.0, 2, 3]), np.array([0, 0, 0.5]),
                                                Header()))
     assert np.array_equal(lin, [1, 2, 3]) and ang[2] == 0.5

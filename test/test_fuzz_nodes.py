@@ -1,9 +1,10 @@
 """Fuzz: every node's subscriptions take storms of generated messages (Hypothesis).
 
 One long-lived process of the node under test, started from its console script with its
-params file, and no other node (one node's outputs are another's inputs). Each Hypothesis example is a storm of 20-80 messages, sent in windows the node
-has room for (no message is lost, so every one can be accounted for); after each
-window the process must still run. After a case's storms:
+params file, and no other node (one node's outputs are another's inputs). Each Hypothesis
+example is a storm of 20-80 messages, sent in windows the node has room for (no message
+is lost, so every one can be accounted for); after each window the process must still
+run. After a case's storms:
 - the node's refusal counters (`malformed`, and the stamp refusals some nodes count
   apart) cover at least every message that must be refused, and no more than those
   that may be;

@@ -30,7 +30,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Header
 from tf2_msgs.msg import TFMessage
 
-from uav_vs.ros.convert import MessageError, msg_to_odometry, msg_to_pose, transform_to_msg
+from uav_vs.ros.convert import (MessageError, check_frame, msg_to_odometry, msg_to_pose,
+                                transform_to_msg)
 from uav_vs.ros.ground_params import declare_cameras
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, QuietPublisherNode, ThrottledWarnings, run
 from uav_vs.ros.params import Param, T, declare
@@ -161,9 +162,10 @@ class FramesNode(QuietPublisherNode):
     def on_pose(self, source: str, read: Reader, msg: PoseStamped | Odometry) -> None:
         """world -> the source's frame (and base_link) from one pose, or the pose counted
         as malformed."""
-        if msg.header.frame_id != self.world:
-            return self.malformed(source, 'frame', f'frame {msg.header.frame_id!r}, expected '
-                                                   f'{self.world!r}')
+        try:
+            check_frame(msg.header, self.world)
+        except MessageError as err:
+            return self.malformed(source, 'frame', str(err))
         try:
             position, quaternion = read(msg)
         except MessageError as err:
