@@ -59,7 +59,7 @@ from uav_vs.autopilot.session import (AutopilotError, CommandState, EkfStatus, L
                                       Session, SessionConfig)
 from uav_vs.ros import log_bridge
 from uav_vs.ros.convert import msg_to_pose, odometry_to_msg, stamp_to_ns
-from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, run
+from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, ThrottledWarnings, run
 from uav_vs.ros.params import LiveParams, Param, ParameterError, T, declare
 
 # cmd_vel: room for the commands of a short executor stall, relayed in order.
@@ -232,7 +232,8 @@ class MavlinkRelayNode(Node):
         self.world, self.body = p['world_frame'], p['body_frame']
         self.use_live(p)
         self.counts = dict(cmd_vel=0, sent=0, refused=0, malformed=0, vision=0)
-        self.next_warning: dict[str, float] = {}
+        self.input_warnings = ThrottledWarnings(self, 2.0)      # per kind of bad message
+        self.signing_warnings = ThrottledWarnings(self, 10.0)   # per signing problem
         self.wrong_type_seen: dict[bytes, int] = {}   # publisher GID -> periods seen
         self.wrong_type_warned: set[bytes] = set()
 
@@ -306,10 +307,7 @@ class MavlinkRelayNode(Node):
     def malformed(self, kind: str, why: str) -> None:
         """Count a bad message; log it, at most every 2 s per kind (all are counted)."""
         self.counts['malformed'] += 1
-        now = time.monotonic()
-        if now >= self.next_warning.get(kind, 0.0):
-            self.next_warning[kind] = now + 2.0
-            self.get_logger().warn(f'{why}; skipped')
+        self.input_warnings.warn(kind, f'{why}; skipped')
 
     def wrong_type_publishers(self) -> list[tuple[str, str]]:
         """(node, type) of each publisher on cmd_vel whose type is not TwistStamped: its
@@ -361,10 +359,7 @@ class MavlinkRelayNode(Node):
             message = f'{message}; cmd_vel publishers of another type: {wrong}'
         if s.signing_problem:
             message = f'{message}; {s.signing_problem}'
-            now = time.monotonic()
-            if now >= self.next_warning.get(s.signing_problem, 0.0):
-                self.next_warning[s.signing_problem] = now + 10.0
-                self.get_logger().warn(message)
+            self.signing_warnings.warn(s.signing_problem, message)
         self.diag.publish(level, message, {
             'link': s.link.value, 'link_reason': s.link_reason, 'autopilot': s.autopilot,
             'vehicle': s.vehicle_type, 'system_id': s.system_id, 'mode': s.mode, 'armed': s.armed,
