@@ -67,7 +67,11 @@ def _cameras(config: Path) -> list[str]:
 
 
 def driver(camera: str, start: float, config: Path, rate: float) -> None:
-    """Publish this camera's rendered frames at `rate` from CLOCK_MONOTONIC `start`."""
+    """Publish this camera's rendered frames at `rate` from CLOCK_MONOTONIC `start`.
+
+    The drivers end together; each then waits its turn (graph.SETTLE_S apart, in camera
+    order) to destroy its node: Fast DDS can deadlock a node's teardown while a peer is
+    leaving (uav_vs.graph.stop)."""
     cfg = load_ground_config(read_params_file(config))
     index = [c.name for c in cfg.cameras].index(camera)
     scene = GroundScene(cfg)
@@ -87,6 +91,7 @@ def driver(camera: str, start: float, config: Path, rate: float) -> None:
         msg.header.stamp = clock.now().to_msg()
         pub.publish(msg)
         k += 1
+    time.sleep(index * graph.SETTLE_S)
     node.destroy_node()
     rclpy.shutdown()
 
@@ -159,8 +164,7 @@ def measure(log_dir: Path, what: str, layout: str, config: Path, rate: float,
         cpu = (sum(_cpu_s(p.pid) for p in procs) - cpu0) / (time.monotonic() - t0) * 100
         _spin_until(executor, lambda: False, start + SECONDS + 0.5)
     finally:
-        for d in drivers:
-            d.wait(timeout=30)
+        _end_drivers(drivers, cameras)
         executor.shutdown()
         node.destroy_node()
         rclpy.shutdown()
@@ -169,6 +173,23 @@ def measure(log_dir: Path, what: str, layout: str, config: Path, rate: float,
     frames = frames_in_window(stamp, start_ns, rate)
     keep = frames >= 0
     return (arrival - stamp)[keep] / 1e6, frames[keep], cpu
+
+
+def _end_drivers(drivers: list[subprocess.Popen], cameras: list[str],
+                 timeout: float = 30.0) -> None:
+    """Wait for the drivers to exit; stop (and report) any still running after `timeout`:
+    one hung in its teardown must neither hold the run nor outlive it."""
+    deadline = time.monotonic() + timeout
+    for d in drivers:
+        try:
+            d.wait(max(deadline - time.monotonic(), 0.0))
+        except subprocess.TimeoutExpired:
+            pass
+    hung = [c for c, d in zip(cameras, drivers) if d.poll() is None]
+    if hung:
+        print(f'ground/latency: driver(s) {", ".join(hung)} still running {timeout:.0f} s after '
+              'their last frame; stopped', file=sys.stderr)
+        graph.stop(drivers)
 
 
 def _run(what: str, layout: str, executor: str, config: Path | None = None,

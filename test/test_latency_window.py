@@ -1,8 +1,13 @@
 """The ground latency benchmark counts poses by the frame they came from (bench.ground_latency):
-a frame set without a pose is a lost pose, wherever the measured window starts."""
+a frame set without a pose is a lost pose, wherever the measured window starts. A camera
+driver hung in its teardown is stopped, not waited for."""
+import subprocess
+import sys
+
 import numpy as np
 
-from bench.ground_latency import SECONDS, WARMUP_S, expected_frames, frames_in_window
+from bench.ground_latency import (SECONDS, WARMUP_S, _end_drivers, expected_frames,
+                                  frames_in_window)
 
 START_NS = 1_700_000_000_123_456_789
 
@@ -33,3 +38,12 @@ def test_a_frame_without_a_pose_is_missing_from_the_count():
     got = np.setdiff1d(frames, lost)
     k = frames_in_window(stamps(rate, got, np.full(len(got), 0.004)), START_NS, rate)
     assert len(np.unique(k[k >= 0])) == expected_frames(rate) - len(lost)
+
+
+def test_a_driver_hung_in_its_teardown_is_stopped_and_named(capsys):
+    done = subprocess.Popen([sys.executable, '-c', 'pass'])
+    hung = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])
+    _end_drivers([done, hung], ['cam1', 'cam2'], timeout=1.0)
+    assert done.returncode == 0
+    assert hung.poll() is not None                  # stopped, not left running
+    assert 'driver(s) cam2 still running' in capsys.readouterr().err
