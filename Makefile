@@ -32,7 +32,7 @@ CORE_TESTS := $(addprefix test/test_,$(addsuffix .py,body_pose calibration_error
 	onboard_scene oxford plane_geometry plane_pose sensor_switches servo sim_world \
 	target_tracking template_align triangulation))
 
-.PHONY: install test test-ubuntu2404 fuzz bench demo clean
+.PHONY: install test test-loaded test-ubuntu2404 fuzz bench demo clean
 
 install: $(STAMP)
 
@@ -56,6 +56,12 @@ $(UBUNTU_STAMP): $(SOURCES) requirements-ubuntu2404.txt
 # flight, the fuzz harness's nodes) starts once, never twice on the same ports.
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 --dist loadscope test
+
+# The same suite with one core kept busy (a busy loop at nice 10), for anyone changing a
+# test that depends on timing: it must pass here too, and count no rerun.
+test-loaded: $(STAMP)
+	nice -n 10 $(BIN)/python -c 'while True: pass' & busy=$$!; \
+	$(BIN)/python -m pytest -n 2 --dist loadscope test; rc=$$?; kill $$busy; exit $$rc
 
 test-ubuntu2404: export AMENT_PREFIX_PATH := $(abspath $(UBUNTU_VENV))
 test-ubuntu2404: export PATH := $(UBUNTU_BIN):$(SYSTEM_PATH)

@@ -89,7 +89,7 @@ def main() -> None:
         follower.on_pose(stamp, R_wb, p_wb)
         follower.on_attitude(stamp, R_wb)
         k += 1
-        return follower.on_target(stamp, px)
+        return follower.on_target(stamp, px)[0]
 
     def reference():
         nonlocal k
@@ -112,7 +112,8 @@ def main() -> None:
                                attitude_source=True)
         fresh.on_pose(0.0, R_wb, p_wb)
         fresh.on_attitude(0.0, R_wb)
-        ours.append(np.linalg.norm(fresh.on_target(0.0, px).target.position - centre))
+        step, = fresh.on_target(0.0, px)
+        ours.append(np.linalg.norm(step.target.position - centre))
     theirs = [np.linalg.norm(opencv_ground(cfg, R_wb, p_wb, px)[4] - centre)
               for R_wb, p_wb, px, centre in cases]
     rays_err = [np.linalg.norm(ground_points(cfg.camera, cfg.camera_to_body, R_wb, p_wb, px)[4]

@@ -6,8 +6,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from uav_vs.control.follow import FollowConfig, TargetFollower, with_yaw_of
+from uav_vs.control.follow import FollowConfig, TargetFollower, interpolate, with_yaw_of
 from uav_vs.sim.ground_scene import rot_z
 from uav_vs.sim.ground_target import CirclePath, GroundTarget
 from uav_vs.sim.onboard_scene import ASSETS, OnboardScene
@@ -144,8 +145,8 @@ def test_the_follower_leads_a_moving_target_by_its_velocity(cfg, box):
         (x, y), _ = path.pose(t)
         p_wb = np.array([x - 0.2, y + 0.1, 1.5])
         follower.on_pose(t + 0.03, R_wb, p_wb)             # ground/pose of another camera
-        step = follower.on_target(t, polygon(cfg, target, t, R_wb, p_wb))
-        assert step.reason == ''
+        step, = follower.on_target(t, polygon(cfg, target, t, R_wb, p_wb))
+        assert step.reason == '' and step.stamp == t
     assert np.linalg.norm(step.velocity - path.velocity(t)) < 0.01
     (x, y), heading = path.pose(t)
     assert np.allclose(step.setpoint[:2], np.add([x, y], 0.5 * path.velocity(t)), atol=0.01)
@@ -155,17 +156,49 @@ def test_the_follower_leads_a_moving_target_by_its_velocity(cfg, box):
 
 def test_the_follower_says_why_it_has_no_setpoint(cfg, box):
     target = GroundTarget(box, 0.4, CirclePath((0.0, 0.0), 0.0, 0.0))
-    follower = TargetFollower(cfg.camera, cfg.camera_to_body, FollowConfig(max_pose_gap=0.1))
+    follower = TargetFollower(cfg.camera, cfg.camera_to_body,
+                              FollowConfig(max_pose_gap=0.1, max_wait=0.5))
     p_wb = np.array([0.1, 0.0, 1.5])
     seen = polygon(cfg, target, 0.0, rot_z(NORTH), p_wb)
-    assert follower.on_target(1.0, seen).reason == 'no vehicle pose yet'
-    follower.on_pose(1.5, rot_z(NORTH), p_wb)
-    assert 'within 0.1 s' in follower.on_target(1.0, seen).reason
-    follower.on_pose(1.0, rot_z(NORTH), p_wb)
-    step = follower.on_target(1.0, seen)
-    assert step.reason == '' and np.allclose(step.setpoint[:2], [0.0, 0.0], atol=1e-6)
+    assert follower.on_target(1.0, seen) == []         # waits for a pose at its stamp
+    assert follower.waiting_for() == "waiting for the vehicle pose at the image's stamp"
+    assert follower.on_target(1.4, seen) == []
+    steps = follower.on_target(1.5, seen)              # 0.5 s newer: the first waited enough
+    assert [(s.stamp, s.reason) for s in steps] == [(1.0, 'vehicle pose: none yet')]
+    steps = follower.on_pose(1.55, rot_z(NORTH), p_wb)  # after the others: placed on it
+    assert [(s.stamp, s.reason) for s in steps] == [
+        (1.4, 'vehicle pose: none within 0.1 s of the image'), (1.5, '')]
+    assert follower.waiting_for() == ''
+    assert np.allclose(steps[1].setpoint[:2], [0.0, 0.0], atol=1e-6)
     follower.on_pose(2.0, tilted(NORTH, math.pi, 0.0), p_wb)       # upside down
-    assert follower.on_target(2.0, seen).reason == 'target rays miss the ground'
+    step, = follower.on_target(2.0, seen)
+    assert step.reason == 'target rays miss the ground'
+
+
+def test_an_image_waits_for_its_pose_which_is_interpolated(cfg, box):
+    """Poses arriving after the image, 0.3 s apart either side of it (a slow ground
+    station): the image waits for the second, and the target, seen from the pose
+    interpolated to its stamp, is placed exactly; the nearest pose alone is too far."""
+    target = GroundTarget(box, 0.4, CirclePath((0.2, 0.1), 0.0, 0.0))
+    R0, p0 = rot_z(1.0), np.array([0.0, 0.0, 1.5])
+    R1, p1 = tilted(1.2, 0.1, -0.05), np.array([0.3, -0.2, 1.6])
+    stamp, f = 0.12, 0.4                                # 0.4 of the way from 0.0 to 0.3 s
+    R_at, p_at = interpolate((0.0, R0, p0), (0.3, R1, p1), stamp)
+    assert np.allclose(p_at, p0 + f * (p1 - p0))
+    turn = Rotation.from_matrix(R0.T @ R1).as_rotvec()
+    assert np.allclose(Rotation.from_matrix(R0.T @ R_at).as_rotvec(), f * turn)
+    seen = polygon(cfg, target, 0.0, R_at, p_at)
+    follower = TargetFollower(cfg.camera, cfg.camera_to_body, FollowConfig(lead=0.0))
+    assert follower.on_target(stamp, seen) == []
+    assert follower.on_pose(0.0, R0, p0) == []         # only before the image: it waits
+    step, = follower.on_pose(0.3, R1, p1)
+    assert np.allclose(step.target.position, [0.2, 0.1], atol=1e-6)
+    nearest = TargetFollower(cfg.camera, cfg.camera_to_body,
+                             FollowConfig(lead=0.0, max_pose_interval=0.1))
+    nearest.on_pose(0.0, R0, p0)
+    nearest.on_pose(0.3, R1, p1)
+    step, = nearest.on_target(stamp, seen)             # 0.12 s from the nearest pose
+    assert step.reason == 'vehicle pose: none within 0.1 s of the image'
 
 
 def test_the_autopilots_tilt_places_the_target_a_level_pose_cannot(cfg, box):
@@ -181,18 +214,22 @@ def test_the_autopilots_tilt_places_the_target_a_level_pose_cannot(cfg, box):
                                   attitude_source=source)
         follower.on_pose(0.0, rot_z(1.0), p_wb)
         follower.on_attitude(0.0, tilted(1.4, math.radians(6), math.radians(8)))
-        step = follower.on_target(0.0, seen)
+        step, = follower.on_target(0.0, seen)
         errors[source] = np.linalg.norm(step.target.position - [0.3, 0.2])
     assert errors[True] < 1e-6
     assert errors[False] > 1.5 * math.tan(math.radians(9))
     assert np.allclose(with_yaw_of(rot_z(1.0), tilted(1.4, 0.1, 0.2)), tilted(1.0, 0.1, 0.2))
     follower = TargetFollower(cfg.camera, cfg.camera_to_body, attitude_source=True)
     follower.on_pose(0.0, rot_z(1.0), p_wb)
-    assert follower.on_target(0.0, seen).reason == 'no attitude yet'
+    assert follower.on_target(0.0, seen) == []
+    assert follower.waiting_for() == "waiting for the attitude at the image's stamp"
+    step, = follower.on_target(0.5, seen)
+    assert step.reason == 'attitude: none yet'
 
 
 @pytest.mark.parametrize('field, value', [('height', 0.0), ('lead', -1.0),
-                                          ('velocity_gain', 0.0), ('max_pose_gap', -0.1)])
+                                          ('velocity_gain', 0.0), ('max_pose_gap', -0.1),
+                                          ('max_pose_interval', 0.0), ('max_wait', -1.0)])
 def test_a_follow_configuration_out_of_range_is_refused(field, value):
     with pytest.raises(ValueError, match=field):
         FollowConfig(**{field: value})

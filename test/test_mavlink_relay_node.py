@@ -136,11 +136,15 @@ def test_flight_in_world_and_body_frames_odometry_and_landing(ros_node, processe
         assert wait_for(lambda: probe.cmd.get_subscription_count() > 0, 20)
         take_off(probe, vehicle)
 
-        # world ENU (0.6 east, 0.8 south, 0.3 up) m/s for 1.2 s: NED (-0.96, +0.72, -0.36) m
-        p0 = vehicle.truth().position
+        # world ENU (0.6 east, 0.8 south, 0.3 up) m/s held T s (the vehicle's own record
+        # of the command, however late a loaded machine ended it): NED (-0.8, 0.6, -0.3) T m
+        p0, t0 = vehicle.truth().position, time.monotonic()
         probe.fly('world', [0.6, -0.8, 0.3])
         settle(vehicle)
-        assert np.allclose(vehicle.truth().position - p0, [-0.96, 0.72, -0.36], atol=0.1)
+        held = vehicle.moving_time(since=t0)
+        assert held >= 1.2
+        assert np.allclose(vehicle.truth().position - p0, np.array([-0.8, 0.6, -0.3]) * held,
+                           atol=0.05)
 
         # the autopilot's estimate, as odometry: ENU position = (NED y, NED x, -NED z),
         # ENU yaw = pi/2 - NED yaw
@@ -156,17 +160,18 @@ def test_flight_in_world_and_body_frames_odometry_and_landing(ros_node, processe
         assert abs(math.remainder(yaw_enu - (math.pi / 2 - truth.yaw), 2 * math.pi)) < 0.01
         assert np.linalg.norm(v) < 0.05 and np.linalg.norm(w) < 0.05
 
-        # +0.6 rad/s about z-up for 1.2 s, in base_link: a left turn, NED yaw falls by 0.72 rad
-        yaw0 = vehicle.truth().yaw
+        # +0.6 rad/s about z-up held T s, in base_link: a left turn, NED yaw falls by 0.6 T rad
+        yaw0, t0 = vehicle.truth().yaw, time.monotonic()
         probe.fly('base_link', [0.0, 0.0, 0.0], yaw_rate=0.6)
         settle(vehicle)
         psi = vehicle.truth().yaw
-        assert math.isclose(math.remainder(psi - yaw0, 2 * math.pi), -0.72, abs_tol=0.07)
+        assert math.isclose(math.remainder(psi - yaw0, 2 * math.pi),
+                            -0.6 * vehicle.moving_time(since=t0), abs_tol=0.03)
 
-        # base_link FLU (0.8 forward, 0.6 left) m/s for 1.5 s at NED heading psi
+        # base_link FLU (0.8 forward, 0.6 left) m/s held T s at NED heading psi
         forward = np.array([math.cos(psi), math.sin(psi)])
         right = np.array([-math.sin(psi), math.cos(psi)])
-        p0 = vehicle.truth().position
+        p0, t0 = vehicle.truth().position, time.monotonic()
         probe.fly('base_link', [0.8, 0.6, 0.0], duration=1.5)
         # the odometry's twist is in base_link (REP-105): compare it with the true velocity
         # near the end of the command, projected by hand on the body axes
@@ -177,19 +182,22 @@ def test_flight_in_world_and_body_frames_odometry_and_landing(ros_node, processe
         assert np.allclose(cruising[:2], [0.8, 0.6], atol=0.15)
         settle(vehicle)
         moved = vehicle.truth().position - p0
-        assert np.allclose(moved[:2], 1.5 * (0.8 * forward - 0.6 * right), atol=0.1)
+        assert np.allclose(moved[:2], vehicle.moving_time(since=t0)
+                           * (0.8 * forward - 0.6 * right), atol=0.05)
         assert abs(moved[2]) < 0.03
         assert abs(math.remainder(vehicle.truth().yaw - psi, 2 * math.pi)) < 0.02  # no nose swing
 
         # the relay stopped mid-command (0.5 m/s north): it exits cleanly after one zero
-        # setpoint; without it the copter would fly on for GUID_TIMEOUT, 1.5 m
+        # setpoint (its command watchdog, 2.5 s here, has not run out); without it the
+        # copter would fly on for GUID_TIMEOUT (3 s)
         for _ in range(10):
+            last = time.monotonic()
             probe.send('world', [0.0, 0.5, 0.0])
             time.sleep(0.05)
-        p0 = vehicle.truth().position
         assert graph.stop([relay]) == [0]
         settle(vehicle)
-        assert (vehicle.truth().position - p0)[0] < 0.4
+        final = vehicle.targets(since=last)[-1]
+        assert final.velocity == (0.0, 0.0, 0.0) and final.time - last < 2.5
 
         # a new relay process picks the flying copter up and lands it
         start_relay(processes, connection, label='relay2')

@@ -44,6 +44,7 @@ class FlightRecorder:
         self.relay: dict[str, str] = {}
         self.ekf: list[list[float]] = []        # FlightLog.ekf
         self.reporting: set[str] = set()        # nodes heard on /diagnostics
+        self.messages: dict[str, str] = {}      # each node's last diagnostics message
         node = self.node
         for name, topic in (('truth', 'truth/pose'), ('ground', 'ground/pose'),
                             ('onboard', 'onboard/pose'), ('target_truth', 'truth/target'),
@@ -95,6 +96,7 @@ class FlightRecorder:
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
             self.reporting.add(status.name)
+            self.messages[status.name] = status.message
             if status.name == RELAY:
                 self.relay = {kv.key: kv.value for kv in status.values}
                 if self.relay.get('ekf_flags'):

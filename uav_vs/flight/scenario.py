@@ -383,7 +383,9 @@ class _Mission:
         while time.monotonic() < end:
             self._check_alive()
             if not self._fresh('target', lost_after):
-                raise MissionError(f'lost the target: no target/pose for {lost_after:g} s')
+                said = '; '.join(f'{name}: {self.rec.messages.get(name, "no diagnostics")}'
+                                 for name in ('/target_tracker_node', '/target_follower_node'))
+                raise MissionError(f'lost the target: no target/pose for {lost_after:g} s ({said})')
             time.sleep(0.05)
 
     def _land_on_pad(self, landing: Landing) -> None:

@@ -280,6 +280,22 @@ class MavlinkVehicle:
         with self._lock:
             return [t for t in self._targets if t.time >= since]
 
+    def moving_time(self, since: float = -math.inf) -> float:
+        """How long the targets received at or after `since` held a velocity or yaw rate
+        (any component above 1e-6) s: from each such target to the next zero one (or
+        now), by the simulator's own clock. A velocity v held this long moves the vehicle v times it,
+        once stopped, however late the targets came: the step integrates each target
+        from its receipt, and the lag's rise and fall cancel."""
+        now = time.monotonic()
+        total, start = 0.0, None
+        for t in self.targets(since):
+            moving = max(map(abs, (*t.velocity, t.yaw_rate))) > 1e-6
+            if moving and start is None:
+                start = t.time
+            elif not moving and start is not None:
+                total, start = total + t.time - start, None
+        return total + (now - start if start is not None else 0.0)
+
     def cut_link(self) -> None:
         """Simulated radio loss: nothing is sent, everything received is dropped."""
         with self._lock:
