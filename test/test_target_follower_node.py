@@ -110,6 +110,21 @@ def test_follows_a_target_and_skips_malformed_input(ros_node, processes):
         assert yaw_of(q) == pytest.approx(heading, abs=1e-6)
     assert wait_for(lambda: diagnostics[-1]['setpoints'] == '2', 10), diagnostics[-1]
 
+    # Images with no vehicle pose near their stamps (the last is 0.6 s older): the first
+    # waits for its pose, then, an image 0.6 s newer having come, is not placed, and the
+    # diagnostics and the log say why; nothing is published for it.
+    seen = target_polygon(R_wb, p_wb, centre, heading)
+    target_pub.publish(points_to_polygon(seen, stamped(8, 'onboard_camera_optical')))
+    assert wait_for(lambda: diagnostics[-1]['waiting'] == '1', 10), diagnostics[-1]
+    assert diagnostics[-1]['waiting_for'] == \
+        "waiting for the vehicle pose and attitude at the image's stamp"
+    target_pub.publish(points_to_polygon(seen, stamped(14, 'onboard_camera_optical')))
+    why = 'target not placed: vehicle pose: none within 0.1 s of the image'
+    assert wait_for(lambda: diagnostics[-1]['not_placed'] == '1'
+                    and diagnostics[-1]['message'] == why, 10), diagnostics[-1]
+    assert len(setpoints) == 2 and len(targets) == 2
+    assert wait_for(lambda: why in processes.log('follower'), 10), processes.log('follower')
+
 
 def test_a_bad_parameter_stops_the_node_with_one_line(tmp_path: Path):
     run = subprocess.run([executable('target_follower_node'), '--ros-args', '--params-file',

@@ -18,7 +18,9 @@ bottom-left) mapped into the image, then the target's centre (the template centr
 (w/2, h/2) through the homography, not the corners' mean);
 `onboard/target_found` (std_msgs/Bool) for every frame processed, true or false; and
 /diagnostics (frames, found, not found, malformed, stale and future images, restarts,
-errors, inliers, reason). Images come through uav_vs.ros.image_input.
+errors, inliers, reason). A frame without the target publishes nothing on
+onboard/target: why is the diagnostics' message and, every 5 s at most, a warning in
+the log. Images come through uav_vs.ros.image_input.
 """
 import time
 from typing import Callable
@@ -113,6 +115,9 @@ class TargetTrackerNode(Node):
         if result.ok:
             self.target_pub.publish(points_to_polygon(np.vstack([result.corners, result.center]),
                                                       header))
+        else:
+            self.get_logger().warn(f'target not found: {result.reason}',
+                                   throttle_duration_sec=5.0)
         self.found_pub.publish(Bool(data=bool(result.ok)))
 
     def publish_diagnostics(self) -> None:

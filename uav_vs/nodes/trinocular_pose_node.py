@@ -6,7 +6,8 @@ NaN when not found) for every camera in `cameras.names`; synchronises them by st
 triangulates (eq 24-25) and solves yaw + position (eq 26).
 Publishes `ground/pose` (PoseStamped, `world` ENU), `ground/landmarks`
 (PolygonStamped, 3D landmark positions in `world`, NaN where not triangulated) and
-/diagnostics.
+/diagnostics. A frame set that gives no pose publishes none on ground/pose: why is the
+diagnostics' message and, every 5 s at most, a warning in the log.
 
 A landmarks message stamped more than `trinocular.future_tolerance` ahead of the node's
 clock is dropped (`future`) before it reaches the synchroniser, so a camera clock
@@ -179,6 +180,8 @@ class TrinocularPoseNode(QuietPublisherNode):
         header = Header(stamp=ns_to_stamp(frame_set.stamp_ns), frame_id=self.frame_id)
         if pose.ok:
             self.pose_pub.publish(pose_to_msg(pose.position, pose.quaternion, header))
+        else:
+            self.get_logger().warn(f'no pose: {pose.reason}', throttle_duration_sec=5.0)
         self.counts['poses' if pose.ok else 'no_pose'] += 1
         self.landmarks_pub.publish(points_to_polygon(tri.points, header))
         finite = np.isfinite(tri.reproj_px)
