@@ -23,6 +23,7 @@ EXECUTABLES = {
     'sim_world': 'uav_vs.nodes.sim_world_node:main',
     'frames_node': 'uav_vs.nodes.frames_node:main',
     'uav_vs_cmd': 'uav_vs.nodes.flight_cmd:main',
+    'uav_vs_calibrate': 'uav_vs.calibrate:main',
 }
 
 DATA_FILES = [

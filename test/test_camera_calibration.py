@@ -1,0 +1,227 @@
+"""Calibrating real cameras (uav_vs.vision.calibration, uav_vs_calibrate).
+
+Ground truth: a known camera projecting a known board (analytic geometry), a chessboard
+rendered through a known camera, and real data: ViSP's circle grid with the intrinsics
+its authors published, and caliscope's four webcams filming a ChArUco board, with the
+reprojection errors of that project's own calibration."""
+import math
+import subprocess
+import sys
+import tomllib
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from uav_vs.vision.calibration import (Board, CalibrationError, Detection, Limits,
+                                       calibrate_camera, camera_info_yaml, coverage, detect,
+                                       detect_all, read_images)
+
+K_TRUE = np.array([[820.0, 0.0, 652.0], [0.0, 815.0, 371.0], [0.0, 0.0, 1.0]])
+D_TRUE = np.array([-0.28, 0.09, 0.0008, -0.0005, -0.012])
+SIZE = (1280, 720)
+BOARD = Board('chessboard', 7, 10, 0.03)
+VISP_PINHOLE = (276.509794, 272.9594743, 163.8652259, 113.304585)      # px, py, u0, v0
+VISP_K1 = (272.3968612, 268.6672142, 163.1810262, 112.9659689)
+
+
+def board_pose(rng, tilt_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """A pose of BOARD (its centre 0.5-0.9 m ahead) tilted by tilt_deg about a random axis."""
+    axis = np.array([*rng.normal(size=2), 0.0])
+    axis /= np.linalg.norm(axis)
+    rvec = axis * math.radians(tilt_deg)
+    centre = BOARD.object_points().mean(axis=0)
+    R = cv2.Rodrigues(rvec)[0]
+    t = np.array([rng.uniform(-0.12, 0.12), rng.uniform(-0.06, 0.06), rng.uniform(0.5, 0.9)])
+    return rvec, t - R @ centre
+
+
+def view(rng, tilt_deg: float, noise_px: float, sharpness: float = 100.0) -> Detection:
+    """BOARD seen by the true camera from a random pose, with pixel noise."""
+    while True:
+        rvec, tvec = board_pose(rng, tilt_deg)
+        px, _ = cv2.projectPoints(BOARD.object_points(), rvec, tvec, K_TRUE, D_TRUE)
+        px = px.reshape(-1, 2)
+        if (px > 0).all() and (px < SIZE).all():
+            noisy = px + rng.normal(0.0, noise_px, px.shape)
+            return Detection(np.arange(len(px), dtype=np.int32), noisy.astype(np.float32),
+                             sharpness)
+
+
+def test_a_known_camera_is_recovered_and_bad_views_are_named():
+    rng = np.random.default_rng(4)
+    views = {f'v{k:02d}': view(rng, rng.uniform(10, 45), 0.1) for k in range(14)}
+    views['bad'] = view(rng, 30, 3.0)              # a detector's mistake: 3 px noise
+    views['steep'] = view(rng, 80, 0.1)            # the board nearly edge-on
+    views['blurred'] = view(rng, 20, 0.1, sharpness=5.0)
+    result = calibrate_camera(BOARD, views, SIZE)
+    assert result.dropped.keys() == {'bad', 'steep', 'blurred'}
+    assert result.dropped['bad'].startswith('outlier')
+    assert result.dropped['steep'].startswith('too oblique')
+    assert result.dropped['blurred'].startswith('blurred')
+    assert 0.12 < result.rms < 0.15                    # the noise: 0.1 px per axis, 0.14 px
+    # views left out, without noise: the board's pose solved with the estimate, its
+    # points reproject within 0.15 px of the true camera's pixels
+    for _ in range(5):
+        held_out = view(rng, rng.uniform(10, 45), 0.0)
+        objects = BOARD.object_points()
+        ok, rvec, tvec = cv2.solvePnP(objects, held_out.points, result.K, result.D)
+        again, _ = cv2.projectPoints(objects, rvec, tvec, result.K, result.D)
+        error = np.linalg.norm(again.reshape(-1, 2) - held_out.points, axis=1).max()
+        assert ok and error < 0.15, error
+    assert np.allclose(np.diag(result.K)[:2], np.diag(K_TRUE)[:2], rtol=0.005)
+    assert len(result.view_errors) == 14 and 0 < result.coverage <= 1
+
+
+def test_too_few_views_is_one_clear_error():
+    rng = np.random.default_rng(1)
+    views = {'a': view(rng, 20, 0.1), 'b': view(rng, 30, 0.1), 'c': view(rng, 85, 0.1)}
+    with pytest.raises(CalibrationError, match=r'too few views: 2 usable of 3 .*c too oblique'):
+        calibrate_camera(BOARD, views, SIZE)
+    with pytest.raises(CalibrationError, match='model: expected one of'):
+        calibrate_camera(BOARD, views, SIZE, model='fisheye')
+
+
+def test_a_rendered_chessboard_is_found_where_the_camera_projects_it():
+    """A chessboard image warped into a pinhole camera: every inner corner found within
+    0.15 px of its projection."""
+    square_px = 60
+    pattern = np.kron((np.indices((BOARD.rows, BOARD.cols)).sum(axis=0) % 2) * 255,
+                      np.ones((square_px, square_px))).astype(np.uint8)
+    pattern = cv2.copyMakeBorder(pattern, square_px, square_px, square_px, square_px,
+                                 cv2.BORDER_CONSTANT, value=255)
+    # board point (x, y) m <-> pattern pixel (x / square + 2) square_px - 0.5 (the first
+    # inner corner is two squares in, border included; pixel centres are integers)
+    to_pattern = np.array([[square_px / BOARD.square, 0, 2 * square_px - 0.5],
+                           [0, square_px / BOARD.square, 2 * square_px - 0.5], [0, 0, 1]])
+    rvec, tvec = np.array([0.3, -0.2, 0.1]), np.array([-0.13, -0.08, 0.6])
+    R = cv2.Rodrigues(rvec)[0]
+    H = K_TRUE @ np.column_stack([R[:, 0], R[:, 1], tvec]) @ np.linalg.inv(to_pattern)
+    image = cv2.warpPerspective(pattern, H, SIZE, flags=cv2.INTER_AREA, borderValue=128)
+    det = detect(BOARD, image)
+    assert det is not None and det.sharpness > 0
+    truth, _ = cv2.projectPoints(BOARD.object_points(), rvec, tvec, K_TRUE, None)
+    truth = truth.reshape(-1, 2)[det.ids]
+    # a chessboard's corners may come in either order (it looks the same turned by 180 deg)
+    error = min(np.linalg.norm(det.points - order, axis=1).max() for order in (truth, truth[::-1]))
+    assert len(det.ids) == 54 and error < 0.15, error
+    assert detect(BOARD, np.full((480, 640), 128, np.uint8)) is None
+
+
+def test_visp_circles_give_the_published_intrinsics(shared_data):
+    board = Board('circles', 6, 6, 0.034)
+    found, size, count = detect_all(board, read_images([shared_data / 'calibration' /
+                                                        'visp-circles']))
+    assert (len(found), count, size) == (5, 5, (320, 240))
+    for model, published in (('pinhole', VISP_PINHOLE), ('k1', VISP_K1)):
+        result = calibrate_camera(board, found, size, model)
+        K = result.K
+        assert np.allclose((K[0, 0], K[1, 1], K[0, 2], K[1, 2]), published, rtol=0.01), K
+        assert result.rms <= 0.35 and not result.dropped
+
+
+@pytest.fixture(scope='module')
+def caliscope(shared_data):
+    root = shared_data / 'calibration' / 'caliscope' / 'charuco_calibration'
+    spec = tomllib.loads((root / 'charuco.toml').read_text())
+    square = spec['square_size_override_cm'] / 100
+    board = Board('charuco', spec['rows'], spec['columns'], square,
+                  spec['aruco_scale'] * square, spec['dictionary'], spec['inverted'])
+    reference = tomllib.loads((root / 'camera_array.toml').read_text())['cameras']
+    return root, board, reference
+
+
+@pytest.mark.parametrize('cam', [0, 1, 2, 3])
+def test_caliscope_webcams_calibrate_as_well_as_the_reference(caliscope, cam):
+    """Each webcam from its own video of the ChArUco board: RMS no worse than the
+    reference's own (caliscope's intrinsic calibration) + 10 %."""
+    root, board, reference = caliscope
+    found, size, count = detect_all(board, read_images([root / 'extrinsic' / f'cam_{cam}.mp4']))
+    assert count == 111 and size == (1280, 720) and len(found) >= 20
+    result = calibrate_camera(board, found, size)
+    assert result.rms <= 1.1 * reference[str(cam)]['error'], result.report(f'cam_{cam}')
+    # the focal lengths and principal point near the reference's (webcams, 1280x720)
+    K_ref = np.array(reference[str(cam)]['matrix'])
+    assert np.allclose(np.diag(result.K)[:2], np.diag(K_ref)[:2], rtol=0.05)
+    assert np.allclose(result.K[:2, 2], K_ref[:2, 2], atol=30)
+
+
+def test_the_camera_info_file_is_the_ros_format():
+    rng = np.random.default_rng(2)
+    views = {f'v{k}': view(rng, 25, 0.1) for k in range(8)}
+    for model, kind, n in (('plumb_bob', 'plumb_bob', 5), ('rational', 'rational_polynomial', 8)):
+        result = calibrate_camera(BOARD, views, SIZE, model)
+        info = yaml.safe_load(camera_info_yaml('cam1', result))
+        assert (info['image_width'], info['image_height'], info['camera_name']) == \
+            (1280, 720, 'cam1')
+        assert info['distortion_model'] == kind
+        assert info['distortion_coefficients'] == {'rows': 1, 'cols': n,
+                                                   'data': list(map(float, result.D[:n]))}
+        assert np.allclose(np.reshape(info['camera_matrix']['data'], (3, 3)), result.K)
+        assert np.allclose(np.reshape(info['projection_matrix']['data'], (3, 4))[:, :3],
+                           result.K)
+        assert info['rectification_matrix']['data'] == list(np.eye(3).ravel())
+
+
+def test_coverage_counts_the_cells_holding_a_point():
+    assert coverage(np.array([[1.0, 1.0], [2.0, 2.0]]), (100, 100)) == 0.01
+    corners = np.array([[0.0, 0.0], [99.0, 0.0], [0.0, 99.0], [99.0, 99.0], [150.0, 5.0]])
+    assert coverage(corners, (100, 100)) == 0.04
+
+
+@pytest.mark.parametrize('spec, message', [
+    (dict(kind='hexagons', rows=5, cols=4, square=0.05), 'board kind: expected one of'),
+    (dict(kind='chessboard', rows=2, cols=4, square=0.05), 'board rows, columns'),
+    (dict(kind='chessboard', rows=6, cols=4, square=-1.0), 'board square'),
+    (dict(kind='charuco', rows=5, cols=4, square=0.05, marker=0.06), 'board marker'),
+    (dict(kind='charuco', rows=5, cols=4, square=0.05, marker=0.04, dictionary='DICT_9X9'),
+     'board dictionary')])
+def test_a_wrong_board_is_refused(spec, message):
+    with pytest.raises(CalibrationError, match=message):
+        Board(**spec)
+
+
+def calibrate(*args: str, cwd) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, '-m', 'uav_vs.calibrate', *map(str, args)],
+                          capture_output=True, text=True, cwd=cwd, timeout=120,
+                          stdin=subprocess.DEVNULL)
+
+
+def test_the_cli_calibrates_visp_circles_end_to_end(shared_data, tmp_path):
+    board = tmp_path / 'board.yaml'
+    board.write_text('kind: circles\nrows: 6\ncols: 6\nsquare: 0.034\n')
+    run = calibrate('intrinsics', '--board', board, '--model', 'pinhole', '--name', 'visp',
+                    '--out', tmp_path / 'out', shared_data / 'calibration' / 'visp-circles',
+                    cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    assert 'the board found in 5 of 5 images' in run.stdout and 'RMS 0.327 px' in run.stdout
+    info = yaml.safe_load((tmp_path / 'out' / 'visp.yaml').read_text())
+    K = np.reshape(info['camera_matrix']['data'], (3, 3))
+    assert np.allclose((K[0, 0], K[1, 1], K[0, 2], K[1, 2]), VISP_PINHOLE, rtol=0.01)
+    assert (tmp_path / 'out' / 'visp_report.txt').read_text() in run.stdout
+    assert 'examples:' in calibrate('intrinsics', '--help', cwd=tmp_path).stdout
+
+
+def test_the_cli_names_bad_input_in_one_line(shared_data, tmp_path):
+    circles = ['--kind', 'circles', '--rows', '6', '--cols', '6', '--square', '0.034']
+    visp = sorted((shared_data / 'calibration' / 'visp-circles').glob('*.jpg'))
+    (tmp_path / 'empty').mkdir()
+    (tmp_path / 'notes.mp4').write_text('not a video')
+    cv2.imwrite(str(tmp_path / 'small.png'), np.full((120, 160), 255, np.uint8))
+    cv2.imwrite(str(tmp_path / 'blank.png'), np.full((240, 320), 255, np.uint8))
+    cases = [
+        ([*circles, tmp_path / 'blank.png'], 'no board found in any of the 1 images'),
+        ([*circles, *visp[:2]], 'too few views: 2 usable of 2'),
+        ([*circles, visp[0], tmp_path / 'small.png'], 'small.png is 160x120, the images '
+                                                        'before it 320x240'),
+        ([*circles, tmp_path / 'notes.mp4'], 'notes.mp4: cannot be decoded'),
+        ([*circles, tmp_path / 'empty'], 'no image files in the folder'),
+        (['--kind', 'circles', visp[0]], 'give --board FILE or --rows, --cols, --square'),
+        (['--board', tmp_path / 'none.yaml', visp[0]], 'board file'),
+    ]
+    for args, message in cases:
+        run = calibrate('intrinsics', '--out', tmp_path / 'out', *args, cwd=tmp_path)
+        lines = run.stderr.strip().splitlines()
+        assert run.returncode == 2 and len(lines) == 1 and message in lines[0], run.stderr
+        assert 'Traceback' not in run.stderr

@@ -1,0 +1,124 @@
+"""uav_vs_calibrate: calibrate real cameras from images of a board (uav_vs.vision.calibration).
+
+Intrinsics of one camera from images, folders of images or videos of a chessboard, a
+ChArUco board or a circle grid:
+
+    uav_vs_calibrate intrinsics --board board.yaml --name cam1 cam1_images/
+    uav_vs_calibrate intrinsics --kind charuco --rows 5 --cols 4 --square 0.054 \\
+        --marker 0.0405 --dictionary DICT_4X4_1000 --inverted --every 3 cam1.mp4
+    uav_vs_calibrate intrinsics --kind circles --rows 6 --cols 6 --square 0.034 \\
+        --model k1 --out calibration/ circles-*.jpg
+
+writes `<out>/<name>.yaml`, the camera_info file ROS camera drivers load
+(camera_calibration's format, read by camera_info_manager), and `<out>/<name>_report.txt`,
+and prints the report: K, D, the RMS reprojection error of the whole and of each view,
+the views dropped and why (blurred, too oblique, outliers), the image coverage.
+Bad input (no board found, too few views, images of different sizes, a file that is
+neither an image nor a decodable video) stops it with one line and exit status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+# FFmpeg's own messages (a file that is no video) would come before our one line.
+os.environ.setdefault('OPENCV_FFMPEG_LOGLEVEL', '-8')
+
+from uav_vs.vision.calibration import (BOARD_KINDS, MODELS, Board,  # noqa: E402
+                                       CalibrationError, Limits, calibrate_camera,
+                                       camera_info_yaml, detect_all, read_images)
+
+EPILOG = """examples:
+  uav_vs_calibrate intrinsics --board board.yaml --name cam1 cam1_images/
+  uav_vs_calibrate intrinsics --kind charuco --rows 5 --cols 4 --square 0.054 \\
+      --marker 0.0405 --dictionary DICT_4X4_1000 --inverted --every 3 cam1.mp4
+  uav_vs_calibrate intrinsics --kind circles --rows 6 --cols 6 --square 0.034 \\
+      --model k1 circles-01.jpg circles-02.jpg circles-03.jpg
+
+board.yaml: kind (chessboard, charuco, circles, acircles), rows, cols (squares of a
+chessboard or ChArUco board, circles of a grid), square (m: the side of a square, or
+the circles' spacing), and for charuco marker (m), dictionary, inverted (true when
+printed white on black)."""
+
+
+def parser() -> argparse.ArgumentParser:
+    top = argparse.ArgumentParser(
+        prog='uav_vs_calibrate', description='Calibrate cameras from images of a board.',
+        formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG)
+    commands = top.add_subparsers(dest='command', required=True)
+    intr = commands.add_parser(
+        'intrinsics', help='K and D of one camera',
+        formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
+        description='K and lens distortion D of one camera from board images or videos.')
+    intr.add_argument('inputs', nargs='+', type=Path,
+                      help='image files, folders of images, or videos')
+    board = intr.add_argument_group('the board (a YAML file, or these flags)')
+    board.add_argument('--board', type=Path, help='board YAML (kind, rows, cols, square, ...)')
+    board.add_argument('--kind', choices=BOARD_KINDS)
+    board.add_argument('--rows', type=int, help='squares (chessboard, charuco) or circles')
+    board.add_argument('--cols', type=int, help='squares (chessboard, charuco) or circles')
+    board.add_argument('--square', type=float, help='square side or circle spacing, m')
+    board.add_argument('--marker', type=float, default=0.0, help='ChArUco marker side, m')
+    board.add_argument('--dictionary', default='DICT_4X4_50', help='ChArUco ArUco dictionary')
+    board.add_argument('--inverted', action='store_true',
+                       help='ChArUco printed white on black')
+    intr.add_argument('--model', choices=MODELS, default='plumb_bob',
+                      help='distortion model (default plumb_bob)')
+    intr.add_argument('--name', default='camera', help='camera name (default camera)')
+    intr.add_argument('--every', type=int, default=1, help='of a video, every N-th frame')
+    intr.add_argument('--blur-ratio', type=float, default=Limits.blur_ratio,
+                      help="views whose board is less sharp (the Laplacian's variance) than "
+                           "this times the views' median are dropped as blurred (default "
+                           "%(default)s; 0 keeps every view)")
+    intr.add_argument('--max-tilt', type=float, default=Limits.max_tilt_deg,
+                      help='views of a board turned further from the camera are dropped, '
+                           'deg (default %(default)s)')
+    intr.add_argument('--out', type=Path, default=Path('calibration'),
+                      help='output folder (default calibration)')
+    return top
+
+
+def board_of(args: argparse.Namespace) -> Board:
+    if args.board is not None:
+        return Board.load(args.board)
+    missing = [flag for flag in ('kind', 'rows', 'cols', 'square')
+               if getattr(args, flag) is None]
+    if missing:
+        raise CalibrationError(f'the board: give --board FILE or --{", --".join(missing)}')
+    return Board(args.kind, args.rows, args.cols, args.square, args.marker, args.dictionary,
+                 args.inverted)
+
+
+def intrinsics(args: argparse.Namespace) -> None:
+    if args.every < 1:
+        raise CalibrationError(f'--every: expected a whole number of frames >= 1, got '
+                               f'{args.every}')
+    board = board_of(args)
+    found, size, count = detect_all(board, read_images(args.inputs, args.every))
+    print(f'{args.name}: the board found in {len(found)} of {count} images', flush=True)
+    limits = Limits(blur_ratio=args.blur_ratio, max_tilt_deg=args.max_tilt)
+    result = calibrate_camera(board, found, size, args.model, limits)
+    report = '\n'.join(result.report(args.name)) + '\n'
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f'{args.name}.yaml').write_text(camera_info_yaml(args.name, result))
+    (args.out / f'{args.name}_report.txt').write_text(report)
+    print(report + f'wrote {args.out / args.name}.yaml and {args.name}_report.txt')
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        intrinsics(args)
+    except CalibrationError as err:
+        print(f'uav_vs_calibrate: {err}', file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f'uav_vs_calibrate: {err}', file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
