@@ -13,12 +13,25 @@ writes `<out>/<name>.yaml`, the camera_info file ROS camera drivers load
 (camera_calibration's format, read by camera_info_manager), and `<out>/<name>_report.txt`,
 and prints the report: K, D, the RMS reprojection error of the whole and of each view,
 the views dropped and why (blurred, too oblique, outliers), the image coverage.
+The poses of a rig of cameras filming the board together, in the world frame of one
+view where the board lies on the ground (REP-103: x along the board's first row, z up):
+
+    uav_vs_calibrate rig --board board.yaml --camera cam1=cam1.mp4 --camera cam2=cam2.mp4 \
+        --camera cam3=cam3.mp4 --intrinsics calibration/ --ground 0
+
+matches the cameras' frames by index (or by a `--sync` CSV of sync_index, camera,
+frame_index), solves every camera's R, t (uav_vs.vision.rig_calibration), and writes
+`<out>/cameras.yaml`, the `cameras` block of config/ground_trinocular.yaml, and
+`<out>/rig_report.txt`.
+
 Bad input (no board found, too few views, images of different sizes, a file that is
-neither an image nor a decodable video) stops it with one line and exit status 2.
+neither an image nor a decodable video, a camera that never shares a view with the
+others) stops it with one line and exit status 2.
 """
 from __future__ import annotations
 
 import argparse
+import csv
 import os
 import sys
 from pathlib import Path
@@ -27,8 +40,10 @@ from pathlib import Path
 os.environ.setdefault('OPENCV_FFMPEG_LOGLEVEL', '-8')
 
 from uav_vs.vision.calibration import (BOARD_KINDS, MODELS, Board,  # noqa: E402
-                                       CalibrationError, Limits, calibrate_camera,
-                                       camera_info_yaml, detect_all, read_images)
+                                       CalibrationInputError, Limits, calibrate_camera,
+                                       camera_info_yaml, detect_all, read_camera_info,
+                                       read_images)
+from uav_vs.vision.rig_calibration import calibrate_rig  # noqa: E402
 
 EPILOG = """examples:
   uav_vs_calibrate intrinsics --board board.yaml --name cam1 cam1_images/
@@ -36,6 +51,8 @@ EPILOG = """examples:
       --marker 0.0405 --dictionary DICT_4X4_1000 --inverted --every 3 cam1.mp4
   uav_vs_calibrate intrinsics --kind circles --rows 6 --cols 6 --square 0.034 \\
       --model k1 circles-01.jpg circles-02.jpg circles-03.jpg
+  uav_vs_calibrate rig --board board.yaml --camera cam1=cam1.mp4 --camera cam2=cam2.mp4 \\
+      --camera cam3=cam3.mp4 --intrinsics calibration/ --ground 0
 
 board.yaml: kind (chessboard, charuco, circles, acircles), rows, cols (squares of a
 chessboard or ChArUco board, circles of a grid), square (m: the side of a square, or
@@ -54,16 +71,7 @@ def parser() -> argparse.ArgumentParser:
         description='K and lens distortion D of one camera from board images or videos.')
     intr.add_argument('inputs', nargs='+', type=Path,
                       help='image files, folders of images, or videos')
-    board = intr.add_argument_group('the board (a YAML file, or these flags)')
-    board.add_argument('--board', type=Path, help='board YAML (kind, rows, cols, square, ...)')
-    board.add_argument('--kind', choices=BOARD_KINDS)
-    board.add_argument('--rows', type=int, help='squares (chessboard, charuco) or circles')
-    board.add_argument('--cols', type=int, help='squares (chessboard, charuco) or circles')
-    board.add_argument('--square', type=float, help='square side or circle spacing, m')
-    board.add_argument('--marker', type=float, default=0.0, help='ChArUco marker side, m')
-    board.add_argument('--dictionary', default='DICT_4X4_50', help='ChArUco ArUco dictionary')
-    board.add_argument('--inverted', action='store_true',
-                       help='ChArUco printed white on black')
+    _board_arguments(intr)
     intr.add_argument('--model', choices=MODELS, default='plumb_bob',
                       help='distortion model (default plumb_bob)')
     intr.add_argument('--name', default='camera', help='camera name (default camera)')
@@ -77,7 +85,37 @@ def parser() -> argparse.ArgumentParser:
                            'deg (default %(default)s)')
     intr.add_argument('--out', type=Path, default=Path('calibration'),
                       help='output folder (default calibration)')
+    rig = commands.add_parser(
+        'rig', help='R, t of cameras that film the board together',
+        formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
+        description="The poses of two or more calibrated cameras in the world frame of a "
+                    "view where the board lies on the ground.")
+    _board_arguments(rig)
+    rig.add_argument('--camera', action='append', required=True, metavar='NAME=PATH',
+                     help="a camera's video or folder of images (once per camera; the "
+                          "first is the reference)")
+    rig.add_argument('--intrinsics', type=Path, required=True,
+                     help='the folder of the cameras\' camera_info files (<name>.yaml)')
+    rig.add_argument('--sync', type=Path, help='CSV of sync_index, camera, frame_index: '
+                     'which frames were taken together (default: the same frame index)')
+    rig.add_argument('--ground', type=int, required=True,
+                     help='the sync index (frame) in which the board lies on the ground')
+    rig.add_argument('--out', type=Path, default=Path('calibration'),
+                     help='output folder (default calibration)')
     return top
+
+
+def _board_arguments(command: argparse.ArgumentParser) -> None:
+    board = command.add_argument_group('the board (a YAML file, or these flags)')
+    board.add_argument('--board', type=Path, help='board YAML (kind, rows, cols, square, ...)')
+    board.add_argument('--kind', choices=BOARD_KINDS)
+    board.add_argument('--rows', type=int, help='squares (chessboard, charuco) or circles')
+    board.add_argument('--cols', type=int, help='squares (chessboard, charuco) or circles')
+    board.add_argument('--square', type=float, help='square side or circle spacing, m')
+    board.add_argument('--marker', type=float, default=0.0, help='ChArUco marker side, m')
+    board.add_argument('--dictionary', default='DICT_4X4_50', help='ChArUco ArUco dictionary')
+    board.add_argument('--inverted', action='store_true',
+                       help='ChArUco printed white on black')
 
 
 def board_of(args: argparse.Namespace) -> Board:
@@ -86,14 +124,14 @@ def board_of(args: argparse.Namespace) -> Board:
     missing = [flag for flag in ('kind', 'rows', 'cols', 'square')
                if getattr(args, flag) is None]
     if missing:
-        raise CalibrationError(f'the board: give --board FILE or --{", --".join(missing)}')
+        raise CalibrationInputError(f'the board: give --board FILE or --{", --".join(missing)}')
     return Board(args.kind, args.rows, args.cols, args.square, args.marker, args.dictionary,
                  args.inverted)
 
 
 def intrinsics(args: argparse.Namespace) -> None:
     if args.every < 1:
-        raise CalibrationError(f'--every: expected a whole number of frames >= 1, got '
+        raise CalibrationInputError(f'--every: expected a whole number of frames >= 1, got '
                                f'{args.every}')
     board = board_of(args)
     found, size, count = detect_all(board, read_images(args.inputs, args.every))
@@ -107,11 +145,57 @@ def intrinsics(args: argparse.Namespace) -> None:
     print(report + f'wrote {args.out / args.name}.yaml and {args.name}_report.txt')
 
 
+def rig(args: argparse.Namespace) -> None:
+    board = board_of(args)
+    sources = {}
+    for spec in args.camera:
+        name, sep, path = spec.partition('=')
+        if not sep or not name or not path:
+            raise CalibrationInputError(f'--camera {spec!r}: expected NAME=PATH')
+        sources[name] = Path(path)
+    sync = read_sync(args.sync) if args.sync else None
+    detections, intrinsics = {}, {}
+    for name, path in sources.items():
+        intrinsics[name] = read_camera_info(args.intrinsics / f'{name}.yaml')
+        found, size, count = detect_all(board, read_images([path]))
+        if size != intrinsics[name].size:
+            raise CalibrationInputError(f'{name}: images {size[0]}x{size[1]}, its camera_info '
+                                        f'{intrinsics[name].size[0]}x{intrinsics[name].size[1]}')
+        frames = {int(key.rpartition('#')[2]) if '#' in key else k: det
+                  for k, (key, det) in enumerate(found.items())}
+        if sync is not None:
+            frames = {sync[name, f]: det for f, det in frames.items() if (name, f) in sync}
+        detections[name] = {str(f): det for f, det in frames.items()}
+        print(f'{name}: the board found in {len(found)} of {count} images', flush=True)
+    result = calibrate_rig(board, detections, intrinsics, str(args.ground))
+    report = '\n'.join(result.report()) + '\n'
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / 'cameras.yaml').write_text(result.cameras_yaml())
+    (args.out / 'rig_report.txt').write_text(report)
+    print(report + f'wrote {args.out / "cameras.yaml"} and rig_report.txt')
+
+
+def read_sync(path: Path) -> dict[tuple[str, int], int]:
+    """(camera, frame index) -> sync index, from a CSV with those three columns (a
+    camera named by its name, or by its number as 'cam_<n>')."""
+    try:
+        with open(path, newline='') as f:
+            rows = list(csv.DictReader(f))
+        out = {}
+        for row in rows:
+            camera = row.get('camera') or f"cam_{row['cam_id']}"
+            out[camera, int(row['frame_index'])] = int(row['sync_index'])
+        return out
+    except (OSError, KeyError, ValueError, TypeError) as err:
+        raise CalibrationInputError(f'sync file {path}: expected columns sync_index, camera '
+                                    f'(or cam_id), frame_index ({err})') from None
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
-        intrinsics(args)
-    except CalibrationError as err:
+        {'intrinsics': intrinsics, 'rig': rig}[args.command](args)
+    except CalibrationInputError as err:
         print(f'uav_vs_calibrate: {err}', file=sys.stderr)
         return 2
     except OSError as err:

@@ -41,7 +41,7 @@ IMAGE_SUFFIXES = frozenset({'.png', '.jpg', '.jpeg', '.bmp', '.tif', '.tiff', '.
 COVERAGE_GRID = 10      # the image cut into 10 x 10 cells for the coverage figure
 
 
-class CalibrationError(ValueError):
+class CalibrationInputError(ValueError):
     """Input that cannot be calibrated; its text is one line for the user."""
 
 
@@ -63,22 +63,22 @@ class Board:
 
     def __post_init__(self) -> None:
         if self.kind not in BOARD_KINDS:
-            raise CalibrationError(f'board kind: expected one of {", ".join(BOARD_KINDS)}, '
+            raise CalibrationInputError(f'board kind: expected one of {", ".join(BOARD_KINDS)}, '
                                    f'got {self.kind!r}')
         least = 2 if self.kind in ('chessboard', 'charuco') else 1
         if not (isinstance(self.rows, int) and isinstance(self.cols, int)
                 and min(self.rows, self.cols) > least):
-            raise CalibrationError(f'board rows, columns: expected integers above {least}, '
+            raise CalibrationInputError(f'board rows, columns: expected integers above {least}, '
                                    f'got {self.rows} x {self.cols}')
         if not (isinstance(self.square, (int, float)) and self.square > 0):
-            raise CalibrationError(f'board square: expected a size in metres above 0, got '
+            raise CalibrationInputError(f'board square: expected a size in metres above 0, got '
                                    f'{self.square!r}')
         if self.kind == 'charuco':
             if not 0 < self.marker < self.square:
-                raise CalibrationError(f'board marker: expected a size in metres between 0 '
+                raise CalibrationInputError(f'board marker: expected a size in metres between 0 '
                                        f'and the square ({self.square:g}), got {self.marker!r}')
             if not hasattr(cv2.aruco, self.dictionary):
-                raise CalibrationError(f'board dictionary: {self.dictionary!r} is not an '
+                raise CalibrationInputError(f'board dictionary: {self.dictionary!r} is not an '
                                        f'ArUco dictionary (e.g. DICT_4X4_50, DICT_5X5_100)')
 
     @classmethod
@@ -88,18 +88,18 @@ class Board:
         try:
             spec = yaml.safe_load(Path(path).read_text())
         except (OSError, yaml.YAMLError) as err:
-            raise CalibrationError(f'board file {path}: {err}') from None
+            raise CalibrationInputError(f'board file {path}: {err}') from None
         if not isinstance(spec, dict):
-            raise CalibrationError(f'board file {path}: expected a mapping of kind, rows, '
+            raise CalibrationInputError(f'board file {path}: expected a mapping of kind, rows, '
                                    f'cols, square, ...')
         unknown = set(spec) - {'kind', 'rows', 'cols', 'square', 'marker', 'dictionary',
                                'inverted'}
         if unknown:
-            raise CalibrationError(f'board file {path}: unknown keys {", ".join(sorted(unknown))}')
+            raise CalibrationInputError(f'board file {path}: unknown keys {", ".join(sorted(unknown))}')
         try:
             return cls(**spec)
         except TypeError as err:
-            raise CalibrationError(f'board file {path}: {err}') from None
+            raise CalibrationInputError(f'board file {path}: {err}') from None
 
     @property
     def pattern(self) -> tuple[int, int]:
@@ -220,7 +220,7 @@ def calibrate_camera(board: Board, views: dict[str, Detection], size: tuple[int,
     """K and D of one camera from the board's detections in views named by their keys
     (file names, frame numbers), all of one image `size` (width, height)."""
     if model not in MODELS:
-        raise CalibrationError(f'model: expected one of {", ".join(MODELS)}, got {model!r}')
+        raise CalibrationInputError(f'model: expected one of {", ".join(MODELS)}, got {model!r}')
     flags, _ = MODELS[model]
     dropped: dict[str, str] = {}
     used = {}
@@ -235,7 +235,7 @@ def calibrate_camera(board: Board, views: dict[str, Detection], size: tuple[int,
     objects = board.object_points()
     while True:
         if len(used) < limits.min_views:
-            raise CalibrationError(
+            raise CalibrationInputError(
                 f'too few views: {len(used)} usable of {len(views)} with the board '
                 f'(at least {limits.min_views} needed)'
                 + (f'; dropped: {"; ".join(f"{k} {v}" for k, v in dropped.items())}'
@@ -299,7 +299,7 @@ def read_images(sources: Iterable[Path], every: int = 1) -> Iterator[tuple[str, 
         if source.is_dir():
             files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
             if not files:
-                raise CalibrationError(f'{source}: no image files in the folder')
+                raise CalibrationInputError(f'{source}: no image files in the folder')
             for path in files:
                 yield path.name, _read_image(path)
         elif source.suffix.lower() in IMAGE_SUFFIXES:
@@ -311,14 +311,14 @@ def read_images(sources: Iterable[Path], every: int = 1) -> Iterator[tuple[str, 
 def _read_image(path: Path) -> np.ndarray:
     image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if image is None:
-        raise CalibrationError(f'{path}: cannot be read as an image')
+        raise CalibrationInputError(f'{path}: cannot be read as an image')
     return image
 
 
 def read_video(path: Path, every: int = 1) -> Iterator[tuple[str, np.ndarray]]:
     """Every `every`-th frame of a video, grey, named '<file>#<frame index>'."""
     if not Path(path).is_file():
-        raise CalibrationError(f'{path}: no such file')
+        raise CalibrationInputError(f'{path}: no such file')
     capture = cv2.VideoCapture(str(path))
     try:
         index = 0
@@ -330,7 +330,7 @@ def read_video(path: Path, every: int = 1) -> Iterator[tuple[str, np.ndarray]]:
                 yield f'{Path(path).name}#{index}', cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
             index += 1
         if index == 0:
-            raise CalibrationError(f'{path}: cannot be decoded as an image or a video')
+            raise CalibrationInputError(f'{path}: cannot be decoded as an image or a video')
     finally:
         capture.release()
 
@@ -346,15 +346,15 @@ def detect_all(board: Board, images: Iterable[tuple[str, np.ndarray]]
         if size is None:
             size = shape
         elif shape != size:
-            raise CalibrationError(f'{name} is {shape[0]}x{shape[1]}, the images before it '
+            raise CalibrationInputError(f'{name} is {shape[0]}x{shape[1]}, the images before it '
                                    f'{size[0]}x{size[1]}: one camera, one image size')
         det = detect(board, image)
         if det is not None:
             found[name] = det
     if count == 0:
-        raise CalibrationError('no images given')
+        raise CalibrationInputError('no images given')
     if not found:
-        raise CalibrationError(f'no board found in any of the {count} images (a {board.kind} '
+        raise CalibrationInputError(f'no board found in any of the {count} images (a {board.kind} '
                                f'of {board.rows}x{board.cols}: check the board description)')
     return found, size, count
 
@@ -376,3 +376,20 @@ def camera_info_yaml(name: str, intrinsics: Intrinsics) -> str:
         'distortion_coefficients': matrix(1, len(D), D),
         'rectification_matrix': matrix(3, 3, np.eye(3)),
         'projection_matrix': matrix(3, 4, P)}, sort_keys=False)
+
+
+def read_camera_info(path: Path) -> Intrinsics:
+    """The intrinsics of a camera_info YAML file (camera_info_yaml's, or camera_calibration's)."""
+    try:
+        info = yaml.safe_load(Path(path).read_text())
+        K = np.array(info['camera_matrix']['data'], float).reshape(3, 3)
+        D = np.array(info['distortion_coefficients']['data'], float)
+        size = (int(info['image_width']), int(info['image_height']))
+        kind = info['distortion_model']
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as err:
+        raise CalibrationInputError(f'camera_info file {path}: {err}') from None
+    models = {'plumb_bob': 'plumb_bob', 'rational_polynomial': 'rational'}
+    if kind not in models:
+        raise CalibrationInputError(f'camera_info file {path}: distortion_model {kind!r}, '
+                                    f'expected plumb_bob or rational_polynomial')
+    return Intrinsics(K, D, models[kind], size, math.nan, {}, {}, math.nan)

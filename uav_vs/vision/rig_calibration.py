@@ -1,0 +1,244 @@
+"""Extrinsics of a rig of cameras that see one board together (chapter section 3.1: the
+ground station's R, t of eq 16), in the world frame a board lying on the ground fixes.
+
+Each camera's intrinsics are known (uav_vs.vision.calibration). Every view of the board
+by a camera gives the board's pose in that camera (cv2.solvePnP); the views two cameras
+share give their relative pose, chained from the first camera through the others, and
+a joint refinement (scipy.optimize.least_squares, with the Jacobian's sparsity) moves
+every camera pose and every board pose to minimise the reprojection error of every
+board point in every camera, the intrinsics held fixed. The world frame (REP-103: ENU,
+z up) is the board's in one view where it lies flat on the ground: origin at its first
+point, x along its first row, z up out of the board.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+import yaml
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+
+from uav_vs.vision.calibration import Board, CalibrationInputError, Detection, Intrinsics
+
+# the board's frame (z into the board, away from a camera above it) to the world (z up)
+BOARD_TO_WORLD = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass(frozen=True)
+class RigCamera:
+    """One camera of the rig: its intrinsics and its world-to-camera pose x_c = R x_w + t."""
+
+    name: str
+    intrinsics: Intrinsics
+    R: np.ndarray
+    t: np.ndarray
+
+    @property
+    def center(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+
+@dataclass(frozen=True)
+class Rig:
+    cameras: list[RigCamera]
+    rms: float                          # over every board point of every view [px]
+    camera_rms: dict[str, float]        # per camera [px]
+    shared_views: dict[str, int]        # per camera: views it shares with another camera
+    views: int                          # views with the board in two cameras or more
+
+    def report(self) -> list[str]:
+        lines = [f'rig: {len(self.cameras)} cameras, {self.views} shared views, RMS '
+                 f'{self.rms:.3f} px']
+        for cam in self.cameras:
+            x, y, z = cam.center
+            lines.append(f'  {cam.name}: at ({x:.3f}, {y:.3f}, {z:.3f}) m, '
+                         f'{self.shared_views[cam.name]} shared views, RMS '
+                         f'{self.camera_rms[cam.name]:.3f} px')
+        return lines
+
+    def cameras_yaml(self) -> str:
+        """The `cameras` block of config/ground_trinocular.yaml (under ros__parameters)."""
+        block: dict = {'names': [c.name for c in self.cameras]}
+        for c in self.cameras:
+            w, h = c.intrinsics.size
+            block[c.name] = {'width': int(w), 'height': int(h), 'frame_id': f'{c.name}_optical',
+                             'K': [float(v) for v in c.intrinsics.K.ravel()],
+                             'D': [float(v) for v in c.intrinsics.D],
+                             'R': [float(v) for v in c.R.ravel()],
+                             't': [float(v) for v in c.t]}
+        return yaml.safe_dump({'cameras': block}, sort_keys=False, width=100)
+
+
+def board_pose(board: Board, det: Detection, intr: Intrinsics) -> np.ndarray:
+    """4x4 board -> camera transform of one view (IPPE for the planar board, refined)."""
+    objects = board.object_points()[det.ids].astype(np.float64)
+    ok, rvec, tvec = cv2.solvePnP(objects, det.points.astype(np.float64), intr.K, intr.D,
+                                  flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        raise CalibrationInputError('the board pose of a view could not be solved')
+    rvec, tvec = cv2.solvePnPRefineLM(objects, det.points.astype(np.float64), intr.K, intr.D,
+                                      rvec, tvec)
+    return _matrix(rvec.ravel(), tvec.ravel())
+
+
+def calibrate_rig(board: Board, detections: dict[str, dict[str, Detection]],
+                  intrinsics: dict[str, Intrinsics], ground_view: str,
+                  refine_intrinsics: bool = False) -> Rig:
+    """R, t of every camera (keys of `detections`, the first one the reference) from the
+    views (by key) each saw, the world fixed by `ground_view`, a view in which the board
+    lies on the ground. Every view takes part in the refinement, a camera's own views
+    too (they tie its lens); `refine_intrinsics` frees K and the model's distortion
+    coefficients there, starting from `intrinsics`."""
+    names = list(detections)
+    if len(names) < 2:
+        raise CalibrationInputError('a rig needs two cameras or more')
+    poses = {c: {v: board_pose(board, d, intrinsics[c]) for v, d in detections[c].items()}
+             for c in names}
+    counts: dict[str, int] = {}
+    for c in names:
+        counts[c] = sum(any(v in poses[o] for o in names if o != c) for v in poses[c])
+    lonely = [c for c in names if counts[c] == 0]
+    if lonely:
+        raise CalibrationInputError(f'{", ".join(lonely)} never shares a view of the board '
+                                    f'with another camera')
+    in_ref = _chain(names, poses)
+    views = sorted({v for c in names for v in poses[c]
+                    if sum(v in poses[o] for o in names) >= 2})
+    if ground_view not in {v for c in names for v in poses[c]}:
+        raise CalibrationInputError(f'ground view {ground_view!r}: no camera saw the board '
+                                    f'in it')
+    boards = {}
+    for v in sorted({v for c in names for v in poses[c]}):
+        c = next(c for c in names if v in poses[c])
+        boards[v] = np.linalg.inv(in_ref[c]) @ poses[c][v]
+    in_ref, intrinsics, boards, residuals = _refine(board, detections, intrinsics, names,
+                                                    in_ref, boards, refine_intrinsics)
+    # world -> ref: world point -> board frame of the ground view -> ref frame
+    world_to_board = np.eye(4)
+    world_to_board[:3, :3] = BOARD_TO_WORLD.T
+    ref_from_world = boards[ground_view] @ world_to_board
+    cameras = []
+    for c in names:
+        T = in_ref[c] @ ref_from_world
+        cameras.append(RigCamera(c, intrinsics[c], T[:3, :3], T[:3, 3]))
+    rms = {c: float(np.sqrt(np.mean(r ** 2))) for c, r in residuals.items()}
+    every = np.concatenate(list(residuals.values()))
+    return Rig(cameras, float(np.sqrt(np.mean(every ** 2))), rms, counts, len(views))
+
+
+def _chain(names: list[str], poses: dict[str, dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """ref -> camera transform of every camera, by the views shared with cameras already
+    placed (breadth first from the reference), each pair's estimates averaged."""
+    placed = {names[0]: np.eye(4)}
+    queue = deque([names[0]])
+    while queue:
+        a = queue.popleft()
+        for b in names:
+            if b in placed:
+                continue
+            shared = [v for v in poses[a] if v in poses[b]]
+            if not shared:
+                continue
+            # b <- a for each shared view: T_b_board inv(T_a_board)
+            estimates = [poses[b][v] @ np.linalg.inv(poses[a][v]) for v in shared]
+            placed[b] = _mean_transform(estimates) @ placed[a]
+            queue.append(b)
+    missing = [c for c in names if c not in placed]
+    if missing:
+        raise CalibrationInputError(f'{", ".join(missing)} shares no view with the cameras '
+                                    f'linked to {names[0]}')
+    return placed
+
+
+def _mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
+    """The chordal mean of the rotations (projected back onto SO(3)) and the median of
+    the translations."""
+    U, _, Vt = np.linalg.svd(sum(T[:3, :3] for T in transforms))
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = R, np.median([T[:3, 3] for T in transforms], axis=0)
+    return out
+
+
+FREE_DISTORTION = {'pinhole': 0, 'k1': 1, 'plumb_bob': 5, 'rational': 8}
+
+
+def _refine(board: Board, detections, intrinsics, names, in_ref, boards, refine_intrinsics):
+    """Bundle adjustment: every camera pose (but the reference's), every board pose and,
+    with `refine_intrinsics`, every camera's fx, fy, cx, cy and free distortion
+    coefficients moved together to minimise every reprojection error of every view."""
+    objects = board.object_points().astype(np.float64)
+    views = list(boards)
+    n_cam, n_view = len(names), len(views)
+    index = {v: k for k, v in enumerate(views)}
+    free = [FREE_DISTORTION[intrinsics[c].model] if refine_intrinsics else 0 for c in names]
+    n_intr = [4 + f if refine_intrinsics else 0 for f in free]
+    pose_at = [None] + [6 * k for k in range(n_cam - 1)]
+    intr_at = np.concatenate([[0], np.cumsum(n_intr)])[:-1] + 6 * (n_cam - 1)
+    board_at = 6 * (n_cam - 1) + sum(n_intr)
+    obs = [(ci, c, v, detections[c][v]) for ci, c in enumerate(names)
+           for v in views if v in detections[c]]
+    x0 = [_vector(in_ref[c]) for c in names[1:]]
+    for ci, c in enumerate(names):
+        if n_intr[ci]:
+            K, D = intrinsics[c].K, intrinsics[c].D
+            x0.append(np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], D[:free[ci]]]))
+    x0 = np.concatenate(x0 + [_vector(boards[v]) for v in views])
+
+    def unpack(x):
+        cams = [np.eye(4)] + [_matrix(x[k:k + 3], x[k + 3:k + 6]) for k in pose_at[1:]]
+        lenses = []
+        for ci, c in enumerate(names):
+            K, D = intrinsics[c].K.copy(), intrinsics[c].D.copy()
+            if n_intr[ci]:
+                q = x[intr_at[ci]:intr_at[ci] + n_intr[ci]]
+                K[0, 0], K[1, 1], K[0, 2], K[1, 2] = q[:4]
+                D[:free[ci]] = q[4:]
+            lenses.append((K, D))
+        bds = [_matrix(x[board_at + 6 * k:board_at + 6 * k + 3],
+                       x[board_at + 6 * k + 3:board_at + 6 * k + 6]) for k in range(n_view)]
+        return cams, lenses, bds
+
+    def residuals(x):
+        cams, lenses, bds = unpack(x)
+        out = []
+        for ci, c, v, det in obs:
+            T = cams[ci] @ bds[index[v]]
+            px, _ = cv2.projectPoints(objects[det.ids], cv2.Rodrigues(T[:3, :3])[0], T[:3, 3],
+                                      *lenses[ci])
+            out.append((px.reshape(-1, 2) - det.points).ravel())
+        return np.concatenate(out)
+
+    sizes = [2 * len(det.ids) for *_, det in obs]
+    sparsity = lil_matrix((sum(sizes), x0.size), dtype=int)
+    row = 0
+    for (ci, c, v, det), size in zip(obs, sizes):
+        if ci > 0:
+            sparsity[row:row + size, pose_at[ci]:pose_at[ci] + 6] = 1
+        sparsity[row:row + size, intr_at[ci]:intr_at[ci] + n_intr[ci]] = 1
+        sparsity[row:row + size, board_at + 6 * index[v]:board_at + 6 * index[v] + 6] = 1
+        row += size
+    fit = least_squares(residuals, x0, jac_sparsity=sparsity, method='trf', x_scale='jac',
+                        loss='soft_l1', f_scale=1.0)
+    cams, lenses, bds = unpack(fit.x)
+    refined = {c: replace(intrinsics[c], K=K, D=D) for c, (K, D) in zip(names, lenses)}
+    errors: dict[str, list] = {c: [] for c in names}
+    row = 0
+    for (ci, c, v, det), size in zip(obs, sizes):
+        errors[c].append(np.linalg.norm(fit.fun[row:row + size].reshape(-1, 2), axis=1))
+        row += size
+    return (dict(zip(names, cams)), refined, dict(zip(views, bds)),
+            {c: np.concatenate(e) for c, e in errors.items()})
+
+
+def _vector(T: np.ndarray) -> np.ndarray:
+    return np.concatenate([cv2.Rodrigues(T[:3, :3])[0].ravel(), T[:3, 3]])
+
+
+def _matrix(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0], tvec
+    return T
