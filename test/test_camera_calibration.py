@@ -82,7 +82,8 @@ def test_a_known_camera_is_recovered_and_bad_views_are_named():
 def test_too_few_views_is_one_clear_error():
     rng = np.random.default_rng(1)
     views = {'a': view(rng, 20, 0.1), 'b': view(rng, 30, 0.1), 'c': view(rng, 85, 0.1)}
-    with pytest.raises(CalibrationInputError, match=r'too few views: 2 usable of 3 .*c too oblique'):
+    with pytest.raises(CalibrationInputError,
+                       match=r'too few views: 2 usable of 3 .*c too oblique'):
         calibrate_camera(BOARD, views, SIZE)
     with pytest.raises(CalibrationInputError, match='model: expected one of'):
         calibrate_camera(BOARD, views, SIZE, model='fisheye')

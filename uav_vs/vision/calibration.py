@@ -95,7 +95,8 @@ class Board:
         unknown = set(spec) - {'kind', 'rows', 'cols', 'square', 'marker', 'dictionary',
                                'inverted'}
         if unknown:
-            raise CalibrationInputError(f'board file {path}: unknown keys {", ".join(sorted(unknown))}')
+            raise CalibrationInputError(f'board file {path}: unknown keys '
+                                        f'{", ".join(sorted(unknown))}')
         try:
             return cls(**spec)
         except TypeError as err:
