@@ -16,6 +16,7 @@ SUITES = {
     'convert': ['convert'],
     'graph': ['graph_latency'],
     'sim': ['camera_effects'],
+    'calibration': ['calibration'],
 }
 
 

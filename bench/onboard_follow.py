@@ -4,7 +4,7 @@ onboard/follow_ground_points: the five pixel rays to the ground plane alone
 (uav_vs.vision.ground_target.ground_points, lens distortion removed).
 onboard/follow_target: `TargetFollower.on_target` per tracker polygon (corners and
 centre, raw pixels), with 64 vehicle poses and 64 attitudes in its history as in flight:
-the pose nearest the image stamp, the ground points, the target's place and heading, the
+the pose and attitude at the image stamp, the ground points, the target's place and heading, the
 alpha-beta filter and the lead. The reference of both is OpenCV's route to the same
 ground points: cv2.undistortPoints onto the pixel plane, then cv2.perspectiveTransform
 by the inverse of the ground-plane homography K [r1 r2 t]. Views: 200 random vehicle

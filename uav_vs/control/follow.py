@@ -23,8 +23,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from uav_vs.vision.camera import Camera
 from uav_vs.vision.ground_target import TargetOnGround, target_on_ground
@@ -97,9 +97,11 @@ def interpolate(a: tuple[float, np.ndarray, np.ndarray], b: tuple[float, np.ndar
     """The pose at `stamp` between the stamped poses a and b: position linear, rotation
     along the shortest arc (slerp)."""
     (s0, R0, p0), (s1, R1, p1) = a, b
-    f = 0.0 if s1 == s0 else (stamp - s0) / (s1 - s0)
-    turn = Rotation.from_matrix(R0.T @ R1).as_rotvec()
-    return R0 @ Rotation.from_rotvec(f * turn).as_matrix(), p0 + f * (p1 - p0)
+    if s1 == s0:
+        return R0, p0
+    f = (stamp - s0) / (s1 - s0)
+    turn = cv2.Rodrigues(R0.T @ R1)[0]
+    return R0 @ cv2.Rodrigues(f * turn)[0], p0 + f * (p1 - p0)
 
 
 class TargetFollower:

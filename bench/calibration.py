@@ -1,0 +1,118 @@
+"""Calibration on real data (uav_vs.vision.calibration, uav_vs.vision.rig_calibration).
+
+calibration/visp_intrinsics: `calibrate_camera` on ViSP's five circle-grid images
+(pinhole model), next to cv2.calibrateCamera alone on the same points; the intrinsics
+against the values ViSP publishes.
+calibration/caliscope_rig: `calibrate_camera` for each of caliscope's four webcams and
+`calibrate_rig` on the even synchronised sets; its figure is the RMS error of the
+neighbour distances (one 54 mm square) of the board's corners triangulated from the
+odd sets, left out, next to caliscope's own solution measured the same way. Detection
+is not timed (it is OpenCV's own detector).
+"""
+import csv
+import math
+import tomllib
+
+import cv2
+import numpy as np
+
+from bench.common import report
+from uav_vs.datasets import HOW_TO_GET, shared_data_dir
+from uav_vs.vision.calibration import Board, calibrate_camera, detect_all, read_images
+from uav_vs.vision.camera import Camera
+from uav_vs.vision.rig_calibration import calibrate_rig
+from uav_vs.vision.triangulation import triangulate
+
+SUITE = 'calibration'
+VISP = (276.509794, 272.9594743, 163.8652259, 113.304585)    # px, py, u0, v0 published
+
+
+def timed(fn, repeat: int):
+    out, ms = None, np.empty(repeat)
+    for k in range(repeat):
+        t0 = cv2.getTickCount()
+        out = fn()
+        ms[k] = (cv2.getTickCount() - t0) / cv2.getTickFrequency() * 1e3
+    return out, ms
+
+
+def visp(data) -> None:
+    board = Board('circles', 6, 6, 0.034)
+    found, size, _ = detect_all(board, read_images([data / 'calibration' / 'visp-circles']))
+    result, ms = timed(lambda: calibrate_camera(board, found, size, 'pinhole'), 20)
+    objects = board.object_points()
+    flags = (cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
+             | cv2.CALIB_ZERO_TANGENT_DIST)
+    _, ref_ms = timed(lambda: cv2.calibrateCamera(
+        [objects[d.ids] for d in found.values()], [d.points for d in found.values()], size,
+        None, None, flags=flags), 20)
+    K = result.K
+    worst = max(abs(a / b - 1) for a, b in zip((K[0, 0], K[1, 1], K[0, 2], K[1, 2]), VISP))
+    report(SUITE, 'calibration/visp_intrinsics', ms, 'cv2.calibrateCamera', ref_ms,
+           rms_px=round(result.rms, 4), worst_vs_published_pct=round(100 * worst, 3))
+
+
+def neighbour_rms_mm(board, cameras, detections, views) -> tuple[float, int]:
+    objects = board.object_points()
+    gap = np.linalg.norm(objects[:, None] - objects[None], axis=2)
+    pairs = np.argwhere(np.triu(np.isclose(gap, board.square)))
+    errors = []
+    for view in views:
+        pixels = np.full((len(cameras), len(objects), 2), np.nan)
+        for k, det in enumerate(detections):
+            if view in det:
+                pixels[k, det[view].ids] = det[view].points
+        points = triangulate(cameras, pixels, max_reproj_px=math.inf).points
+        errors += [np.linalg.norm(points[i] - points[j]) - board.square for i, j in pairs
+                   if np.isfinite(points[[i, j]]).all()]
+    return 1000 * float(np.sqrt(np.mean(np.square(errors)))), len(errors)
+
+
+def caliscope(data) -> None:
+    root = data / 'calibration' / 'caliscope' / 'charuco_calibration'
+    spec = tomllib.loads((root / 'charuco.toml').read_text())
+    square = spec['square_size_override_cm'] / 100
+    board = Board('charuco', spec['rows'], spec['columns'], square,
+                  spec['aruco_scale'] * square, spec['dictionary'], spec['inverted'])
+    sync = {(int(r['cam_id']), int(r['frame_index'])): int(r['sync_index'])
+            for r in csv.DictReader(open(root / 'extrinsic' / 'timestamps.csv'))}
+    detections = []
+    for cam in range(4):
+        found, _, _ = detect_all(board, read_images([root / 'extrinsic' / f'cam_{cam}.mp4']))
+        detections.append({sync[cam, int(k.rpartition('#')[2])]: d for k, d in found.items()})
+    names = [f'cam_{cam}' for cam in range(4)]
+    train = {n: {str(v): d for v, d in det.items() if v % 2 == 0}
+             for n, det in zip(names, detections)}
+    ground = min(set(train['cam_0']) & set(train['cam_1']), key=int)
+
+    def solve():
+        intrinsics = {n: calibrate_camera(board, views, (1280, 720)) for n, views in train.items()}
+        return calibrate_rig(board, train, intrinsics, ground)
+    rig, ms = timed(solve, 3)
+    held_out = sorted({v for det in detections for v in det
+                       if v % 2 == 1 and sum(v in d for d in detections) >= 2})
+    ours = [Camera(name=c.name, K=c.intrinsics.K, D=c.intrinsics.D, R=c.R, t=c.t)
+            for c in rig.cameras]
+    reference = tomllib.loads((root / 'camera_array.toml').read_text())['cameras']
+    theirs = [Camera(name=n, K=np.array(reference[str(k)]['matrix']),
+                     D=np.array(reference[str(k)]['distortions']),
+                     R=np.array(reference[str(k)]['rotation']),
+                     t=np.array(reference[str(k)]['translation'])) for k, n in enumerate(names)]
+    rms, pairs = neighbour_rms_mm(board, ours, detections, held_out)
+    ref_rms, _ = neighbour_rms_mm(board, theirs, detections, held_out)
+    report(SUITE, 'calibration/caliscope_rig', ms, None, None, views=rig.views,
+           rig_rms_px=round(rig.rms, 3), held_out_neighbour_rms_mm=round(rms, 3),
+           caliscope_solution_mm=round(ref_rms, 3), pairs=pairs)
+
+
+def main() -> None:
+    data = shared_data_dir()
+    if data is None:
+        print(f'calibration: skipped, {HOW_TO_GET}')
+        return
+    visp(data)
+    caliscope(data)
+
+
+if __name__ == '__main__':
+    main()
