@@ -10,7 +10,6 @@ odd sets, left out, next to caliscope's own solution measured the same way. Dete
 is not timed (it is OpenCV's own detector).
 """
 import csv
-import math
 import tomllib
 
 import cv2
@@ -20,8 +19,7 @@ from bench.common import report
 from uav_vs.datasets import HOW_TO_GET, shared_data_dir
 from uav_vs.vision.calibration import Board, calibrate_camera, detect_all, read_images
 from uav_vs.vision.camera import Camera
-from uav_vs.vision.rig_calibration import calibrate_rig
-from uav_vs.vision.triangulation import triangulate
+from uav_vs.vision.rig_calibration import calibrate_rig, neighbour_errors
 
 SUITE = 'calibration'
 VISP = (276.509794, 272.9594743, 163.8652259, 113.304585)    # px, py, u0, v0 published
@@ -53,19 +51,8 @@ def visp(data) -> None:
 
 
 def neighbour_rms_mm(board, cameras, detections, views) -> tuple[float, int]:
-    objects = board.object_points()
-    gap = np.linalg.norm(objects[:, None] - objects[None], axis=2)
-    pairs = np.argwhere(np.triu(np.isclose(gap, board.square)))
-    errors = []
-    for view in views:
-        pixels = np.full((len(cameras), len(objects), 2), np.nan)
-        for k, det in enumerate(detections):
-            if view in det:
-                pixels[k, det[view].ids] = det[view].points
-        points = triangulate(cameras, pixels, max_reproj_px=math.inf).points
-        errors += [np.linalg.norm(points[i] - points[j]) - board.square for i, j in pairs
-                   if np.isfinite(points[[i, j]]).all()]
-    return 1000 * float(np.sqrt(np.mean(np.square(errors)))), len(errors)
+    errors = neighbour_errors(board, cameras, detections, [str(v) for v in views])
+    return 1000 * float(np.sqrt(np.mean(errors ** 2))), len(errors)
 
 
 def caliscope(data) -> None:
@@ -79,9 +66,10 @@ def caliscope(data) -> None:
     detections = []
     for cam in range(4):
         found, _, _ = detect_all(board, read_images([root / 'extrinsic' / f'cam_{cam}.mp4']))
-        detections.append({sync[cam, int(k.rpartition('#')[2])]: d for k, d in found.items()})
+        detections.append({str(sync[cam, int(k.rpartition('#')[2])]): d
+                           for k, d in found.items()})
     names = [f'cam_{cam}' for cam in range(4)]
-    train = {n: {str(v): d for v, d in det.items() if v % 2 == 0}
+    train = {n: {v: d for v, d in det.items() if int(v) % 2 == 0}
              for n, det in zip(names, detections)}
     ground = min(set(train['cam_0']) & set(train['cam_1']), key=int)
 
@@ -90,7 +78,7 @@ def caliscope(data) -> None:
         return calibrate_rig(board, train, intrinsics, ground)
     rig, ms = timed(solve, 3)
     held_out = sorted({v for det in detections for v in det
-                       if v % 2 == 1 and sum(v in d for d in detections) >= 2})
+                       if int(v) % 2 == 1 and sum(v in d for d in detections) >= 2})
     ours = [Camera(name=c.name, K=c.intrinsics.K, D=c.intrinsics.D, R=c.R, t=c.t)
             for c in rig.cameras]
     reference = tomllib.loads((root / 'camera_array.toml').read_text())['cameras']

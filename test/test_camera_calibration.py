@@ -20,8 +20,7 @@ from uav_vs.vision.calibration import (Board, CalibrationInputError, Detection, 
                                        detect_all, read_images)
 from uav_vs.vision.camera import Camera
 from uav_vs.vision.ground_config import default_config_path, load_ground_config, read_params_file
-from uav_vs.vision.rig_calibration import BOARD_TO_WORLD, calibrate_rig
-from uav_vs.vision.triangulation import triangulate
+from uav_vs.vision.rig_calibration import BOARD_TO_WORLD, calibrate_rig, neighbour_errors
 
 K_TRUE = np.array([[820.0, 0.0, 652.0], [0.0, 815.0, 371.0], [0.0, 0.0, 1.0]])
 D_TRUE = np.array([-0.28, 0.09, 0.0008, -0.0005, -0.012])
@@ -312,32 +311,13 @@ def test_a_camera_sharing_no_view_is_named():
         calibrate_rig(board, detections, intrinsics, 'ground')
 
 
-def by_sync_index(root, found: dict[str, Detection], cam: int) -> dict[int, Detection]:
+def by_sync_index(root, found: dict[str, Detection], cam: int) -> dict[str, Detection]:
     """Camera `cam`'s detections by sync index (timestamps.csv)."""
     sync = {}
     for row in csv.DictReader(open(root / 'extrinsic' / 'timestamps.csv')):
         if int(row['cam_id']) == cam:
             sync[int(row['frame_index'])] = int(row['sync_index'])
-    return {sync[int(key.rpartition('#')[2])]: det for key, det in found.items()}
-
-
-def neighbour_errors_mm(board, cameras, detections, views) -> np.ndarray:
-    """Board corners of `views` triangulated (linear, every camera that sees them) and the
-    distances of grid neighbours (one square apart on the board) minus the square, mm."""
-    objects = board.object_points()
-    gap = np.linalg.norm(objects[:, None] - objects[None], axis=2)
-    pairs = np.argwhere(np.triu(np.isclose(gap, board.square)))
-    errors = []
-    for view in views:
-        pixels = np.full((len(cameras), len(objects), 2), np.nan)
-        for k, det in enumerate(detections):
-            if view in det:
-                pixels[k, det[view].ids] = det[view].points
-        points = triangulate(cameras, pixels, max_reproj_px=math.inf).points
-        for i, j in pairs:
-            if np.isfinite(points[[i, j]]).all():
-                errors.append(np.linalg.norm(points[i] - points[j]) - board.square)
-    return 1000 * np.array(errors)
+    return {str(sync[int(key.rpartition('#')[2])]): det for key, det in found.items()}
 
 
 def test_caliscope_rig_measures_its_board_better_than_its_own_solution(caliscope,
@@ -350,7 +330,7 @@ def test_caliscope_rig_measures_its_board_better_than_its_own_solution(caliscope
     detections = [by_sync_index(root, found, cam)
                   for cam, (found, _, _) in enumerate(caliscope_found)]
     names = [f'cam_{cam}' for cam in range(4)]
-    train = {name: {str(v): d for v, d in det.items() if v % 2 == 0}
+    train = {name: {v: d for v, d in det.items() if int(v) % 2 == 0}
              for name, det in zip(names, detections)}
     intrinsics = {name: calibrate_camera(board, views, (1280, 720))
                   for name, views in train.items()}
@@ -363,10 +343,10 @@ def test_caliscope_rig_measures_its_board_better_than_its_own_solution(caliscope
                      R=np.array(reference[str(k)]['rotation']),
                      t=np.array(reference[str(k)]['translation']))
               for k, name in enumerate(names)]
-    held_out = sorted({v for det in detections for v in det if v % 2 == 1
+    held_out = sorted({v for det in detections for v in det if int(v) % 2 == 1
                        and sum(v in d for d in detections) >= 2})
-    mine = neighbour_errors_mm(board, ours, detections, held_out)
-    ref = neighbour_errors_mm(board, theirs, detections, held_out)
+    mine = 1000 * neighbour_errors(board, ours, detections, held_out)
+    ref = 1000 * neighbour_errors(board, theirs, detections, held_out)
     assert len(mine) == len(ref) > 300
     rms, ref_rms = np.sqrt(np.mean(mine ** 2)), np.sqrt(np.mean(ref ** 2))
     assert rms < ref_rms and abs(np.mean(mine)) < 0.2, (rms, ref_rms, np.mean(mine))

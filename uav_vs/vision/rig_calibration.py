@@ -8,10 +8,11 @@ a joint refinement (scipy.optimize.least_squares, with the Jacobian's sparsity) 
 every camera pose and every board pose to minimise the reprojection error of every
 board point in every camera, the intrinsics held fixed. The world frame (REP-103: ENU,
 z up) is the board's in one view where it lies flat on the ground: origin at its first
-point, x along its first row, z up out of the board.
+point, x along its first row, z up out of the board. `neighbour_errors` checks a rig against the board itself.
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, replace
 
@@ -22,6 +23,8 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
 from uav_vs.vision.calibration import Board, CalibrationInputError, Detection, Intrinsics
+from uav_vs.vision.camera import Camera
+from uav_vs.vision.triangulation import triangulate
 
 # the board's frame (z into the board, away from a camera above it) to the world (z up)
 BOARD_TO_WORLD = np.diag([1.0, -1.0, -1.0])
@@ -242,3 +245,24 @@ def _matrix(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0], tvec
     return T
+
+
+def neighbour_errors(board: Board, cameras: list[Camera],
+                     detections: list[dict[str, Detection]], views: list[str]) -> np.ndarray:
+    """A check of a calibrated rig against the board itself: its points in `views`
+    triangulated (uav_vs.vision.triangulation, linear, by every camera that sees them)
+    and the distance of each pair of grid neighbours minus their true spacing
+    (board.square), m. `detections[k]` are camera k's, by view."""
+    objects = board.object_points()
+    gap = np.linalg.norm(objects[:, None] - objects[None], axis=2)
+    pairs = np.argwhere(np.triu(np.isclose(gap, board.square)))
+    errors = []
+    for view in views:
+        pixels = np.full((len(cameras), len(objects), 2), np.nan)
+        for k, seen in enumerate(detections):
+            if view in seen:
+                pixels[k, seen[view].ids] = seen[view].points
+        points = triangulate(cameras, pixels, max_reproj_px=math.inf).points
+        errors += [np.linalg.norm(points[i] - points[j]) - board.square for i, j in pairs
+                   if np.isfinite(points[[i, j]]).all()]
+    return np.array(errors)
