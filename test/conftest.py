@@ -54,10 +54,22 @@ GRAPH_FIXTURES = frozenset({'ros_node', 'processes', 'ros2_cli', 'ros2_env', 'la
 GRAPH_RERUNS = 1
 
 
+# xdist (--dist loadscope) hands whole modules to the workers in the order collected: the
+# longest ones (50 s to 4 min each by `pytest --durations=0`, mostly flights in real time)
+# go first, longest first, so that the run does not end with one worker flying the last
+# of them while the other idles.
+LONGEST_FIRST = ('test_sitl_closed_loop', 'test_fuzz_nodes', 'test_mavlink_relay_node',
+                 'test_closed_loop', 'test_mavlink_session', 'test_mavlink_vehicle',
+                 'test_fault_injection', 'test_mavlink_guards', 'test_ground_nodes',
+                 'test_launch', 'test_world_switches', 'test_live_params')
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if GRAPH_FIXTURES & set(getattr(item, 'fixturenames', ())):
             item.add_marker(pytest.mark.flaky(reruns=GRAPH_RERUNS, reruns_delay=1))
+    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))
 
 
 @pytest.fixture(scope='session')

@@ -19,7 +19,8 @@ from uav_vs.vision.calibration import (Board, CalibrationInputError, Detection, 
                                        calibrate_camera, camera_info_yaml, coverage, detect,
                                        detect_all, read_images)
 from uav_vs.vision.camera import Camera
-from uav_vs.vision.ground_config import default_config_path, load_ground_config, read_params_file
+from uav_vs.vision.ground_config import (default_config_path, flat_params, load_ground_config,
+                                         read_params_file)
 from uav_vs.vision.rig_calibration import BOARD_TO_WORLD, calibrate_rig, neighbour_errors
 
 K_TRUE = np.array([[820.0, 0.0, 652.0], [0.0, 815.0, 371.0], [0.0, 0.0, 1.0]])
@@ -281,20 +282,9 @@ def test_a_rig_is_recovered_in_the_world_of_the_board_on_the_ground():
         assert turn < 0.05 and np.linalg.norm(ours.t - true.t) < 0.002, (true.name, turn)
         assert np.linalg.norm(ours.center - true.center) < 0.01
     block = yaml.safe_load(rig.cameras_yaml())['cameras']
-    config = load_ground_config({f'cameras.{k}': v for k, v in _flatten(block).items()}
-                                | _landmarks())
+    config = load_ground_config(flat_params(block, 'cameras.') | _landmarks())
     assert [c.name for c in config.cameras] == ['cam1', 'cam2', 'cam3']
     assert np.allclose(config.cameras[0].R, rig.cameras[0].R)
-
-
-def _flatten(tree: dict, prefix: str = '') -> dict:
-    out = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            out.update(_flatten(value, f'{prefix}{key}.'))
-        else:
-            out[f'{prefix}{key}'] = value
-    return out
 
 
 def _landmarks() -> dict:

@@ -24,6 +24,19 @@ frame_index), solves every camera's R, t (uav_vs.vision.rig_calibration), and wr
 `<out>/cameras.yaml`, the `cameras` block of config/ground_trinocular.yaml, and
 `<out>/rig_report.txt`.
 
+The landmarks' positions on the vehicle and their colour samples, from frames of the
+calibrated rig with the vehicle standing still at a placement the user chooses (its body
+origin in the world and its heading, deg counter-clockwise from east):
+
+    uav_vs_calibrate landmarks --config config/ground_trinocular.yaml \
+        --cameras calibration/cameras.yaml --camera cam1=still1/ --camera cam2=still2/ \
+        --camera cam3=still3/ --placement 1.0 0.5 0.25 90 --out calibration/
+
+finds each landmark by the configured colour ranges (uav_vs.vision.landmark_survey),
+triangulates it, and writes `<out>/landmarks.yaml`, the `landmarks` block of
+config/ground_trinocular.yaml with `position` in base_link and `sample`, the images
+`<out>/<name>.png` it cut, and `<out>/landmarks_report.txt`.
+
 Bad input (no board found, too few views, images of different sizes, a file that is
 neither an image nor a decodable video, a camera that never shares a view with the
 others) stops it with one line and exit status 2.
@@ -32,9 +45,14 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 import os
 import sys
 from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
 
 # FFmpeg's own messages (a file that is no video) would come before our one line.
 os.environ.setdefault('OPENCV_FFMPEG_LOGLEVEL', '-8')
@@ -43,6 +61,11 @@ from uav_vs.vision.calibration import (BOARD_KINDS, MODELS, Board,  # noqa: E402
                                        CalibrationInputError, Limits, calibrate_camera,
                                        camera_info_yaml, detect_all, read_camera_info,
                                        read_images)
+from uav_vs.vision.colour_model import models_from_params  # noqa: E402
+from uav_vs.vision.ground_config import (flat_params, load_ground_config,  # noqa: E402
+                                         read_params_file)
+from uav_vs.vision.landmark_survey import (Placement, SurveyError,  # noqa: E402
+                                           detector_params, survey)
 from uav_vs.vision.rig_calibration import calibrate_rig  # noqa: E402
 
 EPILOG = """examples:
@@ -53,6 +76,9 @@ EPILOG = """examples:
       --model k1 circles-01.jpg circles-02.jpg circles-03.jpg
   uav_vs_calibrate rig --board board.yaml --camera cam1=cam1.mp4 --camera cam2=cam2.mp4 \\
       --camera cam3=cam3.mp4 --intrinsics calibration/ --ground 0
+  uav_vs_calibrate landmarks --config config/ground_trinocular.yaml \
+      --cameras calibration/cameras.yaml --camera cam1=still1/ --camera cam2=still2/ \
+      --camera cam3=still3/ --placement 1.0 0.5 0.25 90
 
 board.yaml: kind (chessboard, charuco, circles, acircles), rows, cols (squares of a
 chessboard or ChArUco board, circles of a grid), square (m: the side of a square, or
@@ -102,6 +128,28 @@ def parser() -> argparse.ArgumentParser:
                      help='the sync index (frame) in which the board lies on the ground')
     rig.add_argument('--out', type=Path, default=Path('calibration'),
                      help='output folder (default calibration)')
+    marks = commands.add_parser(
+        'landmarks', help="the landmarks' positions on the vehicle and colour samples",
+        formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
+        description="Triangulate each landmark of the vehicle standing still before the "
+                    "calibrated rig, in the body frame its placement defines, and cut its "
+                    "colour sample.")
+    marks.add_argument('--config', type=Path, required=True,
+                       help='params file with the landmarks (names, hue, saturation, value) '
+                            'and camshift settings, e.g. config/ground_trinocular.yaml')
+    marks.add_argument('--cameras', type=Path,
+                       help="the rig's cameras.yaml (uav_vs_calibrate rig); default: the "
+                            "config's cameras")
+    marks.add_argument('--camera', action='append', required=True, metavar='NAME=PATH',
+                       help="a camera's still frames: images, a folder or a video (once per "
+                            "camera, two or more)")
+    marks.add_argument('--placement', type=float, nargs=4, required=True,
+                       metavar=('X', 'Y', 'Z', 'YAW'),
+                       help="base_link's origin in the world (ENU, m) and its heading (deg, "
+                            "counter-clockwise from east) as the vehicle stands")
+    marks.add_argument('--every', type=int, default=1, help='of a video, every N-th frame')
+    marks.add_argument('--out', type=Path, default=Path('calibration'),
+                       help='output folder (default calibration)')
     return top
 
 
@@ -175,6 +223,54 @@ def rig(args: argparse.Namespace) -> None:
     print(report + f'wrote {args.out / "cameras.yaml"} and rig_report.txt')
 
 
+def landmarks(args: argparse.Namespace) -> None:
+    try:
+        params = read_params_file(args.config)
+        if args.cameras is not None:
+            params = {k: v for k, v in params.items() if not k.startswith('cameras.')}
+            params |= read_cameras_block(args.cameras)
+        config = load_ground_config(params)
+        detector = detector_params(params)
+        models = models_from_params(params, detector.bins)
+    except (ValueError, yaml.YAMLError) as err:
+        raise CalibrationInputError(f'{args.config}: {err}') from None
+    by_name = {c.name: c for c in config.cameras}
+    cameras, frames = [], []
+    for spec in args.camera:
+        name, sep, path = spec.partition('=')
+        if not sep or not name or not path:
+            raise CalibrationInputError(f'--camera {spec!r}: expected NAME=PATH')
+        if name not in by_name:
+            raise CalibrationInputError(f'--camera {name}: not a camera of the config '
+                                        f'({", ".join(by_name)})')
+        cameras.append(by_name[name])
+        frames.append([image for _, image in read_images([Path(path)], args.every, True)])
+    if len(cameras) < 2:
+        raise CalibrationInputError('--camera: two cameras or more are needed')
+    x, y, z, yaw = args.placement
+    result = survey(cameras, models, detector, frames,
+                    Placement(np.array([x, y, z]), math.radians(yaw)))
+    args.out.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    for name, sample in result.samples.items():
+        paths[name] = (args.out / f'{name}.png').resolve()
+        cv2.imwrite(str(paths[name]), sample)
+    report = '\n'.join(result.report()) + '\n'
+    (args.out / 'landmarks.yaml').write_text(result.landmarks_yaml(params, paths))
+    (args.out / 'landmarks_report.txt').write_text(report)
+    print(report + f'wrote {args.out / "landmarks.yaml"}, landmarks_report.txt and the '
+                   f'samples {", ".join(p.name for p in paths.values())}')
+
+
+def read_cameras_block(path: Path) -> dict[str, object]:
+    """Flat `cameras.*` parameters of a file holding a `cameras` block (as `rig` writes)."""
+    doc = yaml.safe_load(path.read_text())
+    if not isinstance(doc, dict) or not isinstance(doc.get('cameras'), dict):
+        raise CalibrationInputError(f'{path}: expected a cameras block (as uav_vs_calibrate '
+                                    f'rig writes)')
+    return flat_params(doc['cameras'], 'cameras.')
+
+
 def read_sync(path: Path) -> dict[tuple[str, int], int]:
     """(camera, frame index) -> sync index, from a CSV with those three columns (a
     camera named by its name, or by its number as 'cam_<n>')."""
@@ -194,8 +290,8 @@ def read_sync(path: Path) -> dict[tuple[str, int], int]:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
-        {'intrinsics': intrinsics, 'rig': rig}[args.command](args)
-    except CalibrationInputError as err:
+        {'intrinsics': intrinsics, 'rig': rig, 'landmarks': landmarks}[args.command](args)
+    except (CalibrationInputError, SurveyError) as err:
         print(f'uav_vs_calibrate: {err}', file=sys.stderr)
         return 2
     except OSError as err:

@@ -293,31 +293,34 @@ def coverage(points: np.ndarray, size: tuple[int, int]) -> float:
 
 
 # ------------------------------------------------------------------ images and videos
-def read_images(sources: Iterable[Path], every: int = 1) -> Iterator[tuple[str, np.ndarray]]:
-    """(name, grey image) of every image file, every image in a folder (sorted), and
-    every `every`-th frame of every video ('<video>#<frame>')."""
+def read_images(sources: Iterable[Path], every: int = 1, colour: bool = False
+                ) -> Iterator[tuple[str, np.ndarray]]:
+    """(name, grey image, or BGR with `colour`) of every image file, every image in a
+    folder (sorted), and every `every`-th frame of every video ('<video>#<frame>')."""
     for source in map(Path, sources):
         if source.is_dir():
             files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
             if not files:
                 raise CalibrationInputError(f'{source}: no image files in the folder')
             for path in files:
-                yield path.name, _read_image(path)
+                yield path.name, _read_image(path, colour)
         elif source.suffix.lower() in IMAGE_SUFFIXES:
-            yield source.name, _read_image(source)
+            yield source.name, _read_image(source, colour)
         else:
-            yield from read_video(source, every)
+            yield from read_video(source, every, colour)
 
 
-def _read_image(path: Path) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+def _read_image(path: Path, colour: bool = False) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR if colour else cv2.IMREAD_GRAYSCALE)
     if image is None:
         raise CalibrationInputError(f'{path}: cannot be read as an image')
     return image
 
 
-def read_video(path: Path, every: int = 1) -> Iterator[tuple[str, np.ndarray]]:
-    """Every `every`-th frame of a video, grey, named '<file>#<frame index>'."""
+def read_video(path: Path, every: int = 1, colour: bool = False
+               ) -> Iterator[tuple[str, np.ndarray]]:
+    """Every `every`-th frame of a video, grey (or BGR with `colour`), named
+    '<file>#<frame index>'."""
     if not Path(path).is_file():
         raise CalibrationInputError(f'{path}: no such file')
     capture = cv2.VideoCapture(str(path))
@@ -328,7 +331,8 @@ def read_video(path: Path, every: int = 1) -> Iterator[tuple[str, np.ndarray]]:
             if not ok:
                 break
             if index % every == 0:
-                yield f'{Path(path).name}#{index}', cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+                yield (f'{Path(path).name}#{index}',
+                       frame if colour else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
             index += 1
         if index == 0:
             raise CalibrationInputError(f'{path}: cannot be decoded as an image or a video')

@@ -51,8 +51,7 @@ def read_params_file(path: str | Path, node: str = '/**') -> dict[str, object]:
     doc = yaml.safe_load(Path(path).read_text()) or {}
     flat: dict[str, object] = {}
     for section in dict.fromkeys(['/**', node]):
-        params = (doc.get(section) or {}).get('ros__parameters') or {}
-        _flatten(params, '', flat)
+        flat |= flat_params((doc.get(section) or {}).get('ros__parameters') or {})
     return flat
 
 
@@ -74,12 +73,15 @@ def load_ground_config(params: Mapping[str, object]) -> GroundConfig:
     return GroundConfig(cameras, names, layout, radius=float(radius), **ranges)
 
 
-def _flatten(tree: Mapping, prefix: str, out: dict) -> None:
+def flat_params(tree: Mapping, prefix: str = '') -> dict[str, object]:
+    """`{dotted.key: value}` of a nested parameter tree, keys prefixed with `prefix`."""
+    out: dict[str, object] = {}
     for key, value in tree.items():
         if isinstance(value, Mapping):
-            _flatten(value, f'{prefix}{key}.', out)
+            out |= flat_params(value, f'{prefix}{key}.')
         else:
             out[f'{prefix}{key}'] = value
+    return out
 
 
 def _sub(params: Mapping[str, object], prefix: str) -> dict[str, object]:
