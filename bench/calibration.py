@@ -15,7 +15,7 @@ import tomllib
 import cv2
 import numpy as np
 
-from bench.common import report
+from bench.common import report, timeit
 from uav_vs.datasets import HOW_TO_GET, shared_data_dir
 from uav_vs.vision.calibration import Board, calibrate_camera, detect_all, read_images
 from uav_vs.vision.camera import Camera
@@ -25,25 +25,17 @@ SUITE = 'calibration'
 VISP = (276.509794, 272.9594743, 163.8652259, 113.304585)    # px, py, u0, v0 published
 
 
-def timed(fn, repeat: int):
-    out, ms = None, np.empty(repeat)
-    for k in range(repeat):
-        t0 = cv2.getTickCount()
-        out = fn()
-        ms[k] = (cv2.getTickCount() - t0) / cv2.getTickFrequency() * 1e3
-    return out, ms
-
-
 def visp(data) -> None:
     board = Board('circles', 6, 6, 0.034)
     found, size, _ = detect_all(board, read_images([data / 'calibration' / 'visp-circles']))
-    result, ms = timed(lambda: calibrate_camera(board, found, size, 'pinhole'), 20)
+    result = calibrate_camera(board, found, size, 'pinhole')
+    ms = timeit(lambda: calibrate_camera(board, found, size, 'pinhole'), 20, warmup=0)
     objects = board.object_points()
     flags = (cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
              | cv2.CALIB_ZERO_TANGENT_DIST)
-    _, ref_ms = timed(lambda: cv2.calibrateCamera(
+    ref_ms = timeit(lambda: cv2.calibrateCamera(
         [objects[d.ids] for d in found.values()], [d.points for d in found.values()], size,
-        None, None, flags=flags), 20)
+        None, None, flags=flags), 20, warmup=0)
     K = result.K
     worst = max(abs(a / b - 1) for a, b in zip((K[0, 0], K[1, 1], K[0, 2], K[1, 2]), VISP))
     report(SUITE, 'calibration/visp_intrinsics', ms, 'cv2.calibrateCamera', ref_ms,
@@ -76,7 +68,8 @@ def caliscope(data) -> None:
     def solve():
         intrinsics = {n: calibrate_camera(board, views, (1280, 720)) for n, views in train.items()}
         return calibrate_rig(board, train, intrinsics, ground)
-    rig, ms = timed(solve, 3)
+    rig = solve()
+    ms = timeit(solve, 3, warmup=0)
     held_out = sorted({v for det in detections for v in det
                        if int(v) % 2 == 1 and sum(v in d for d in detections) >= 2})
     ours = [Camera(name=c.name, K=c.intrinsics.K, D=c.intrinsics.D, R=c.R, t=c.t)

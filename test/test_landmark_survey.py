@@ -160,3 +160,30 @@ def test_frames_of_another_size_are_refused(station, tmp_path, capsys):
     assert main(['landmarks', '--config', str(default_config_path()), *args,
                  '--placement', '0', '0', '0', '0', '--out', str(tmp_path / 'out')]) == 2
     assert 'cam2: a frame of 320x240, the camera is 640x480' in capsys.readouterr().err
+
+
+def with_decoy(shots: list, centre=(60, 40)) -> list:
+    """The frames with a red disc a little larger than the landmark painted in a corner,
+    where the whole-image search takes it for the landmark."""
+    out = []
+    for image in shots:
+        image = image.copy()
+        cv2.circle(image, centre, 10, (0, 0, 210), -1, cv2.LINE_AA)
+        out.append(image)
+    return out
+
+
+def test_a_decoy_in_one_camera_is_outvoted_and_in_two_refused(station):
+    """A red object in one camera's view: the triangulation leaves that camera out and the
+    red landmark is still where it is. In two of the three, no pair of cameras agrees."""
+    params, config, scene = station
+    detector = detector_params(params)
+    models = models_from_params(params, detector.bins)
+    frames = still_frames(scene, (0.4, -0.3, 0.3), 90.0, n=2)
+    placement = Placement(np.array([0.4, -0.3, 0.3]), math.radians(90.0))
+    one = survey(config.cameras, models, detector, [with_decoy(frames[0]), *frames[1:]],
+                 placement)
+    assert one.n_views[0] == 2 and np.linalg.norm(one.body[0] - config.layout[0]) < LAYOUT_TOLERANCE
+    with pytest.raises(SurveyError, match=r'^red: the cameras disagree on where it is'):
+        survey(config.cameras, models, detector,
+               [with_decoy(frames[0]), with_decoy(frames[1]), frames[2]], placement)

@@ -67,13 +67,15 @@ class PoseHistory:
 
     def __init__(self, size: int = 64) -> None:
         self.poses: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=size)
+        self._newest = -math.inf
 
     def add(self, stamp: float, R_wb: np.ndarray, p_wb: np.ndarray) -> None:
         self.poses.append((stamp, R_wb, p_wb))
+        self._newest = max(self._newest, stamp)
 
     def newest(self) -> float:
-        """The latest stamp held, s (-inf when empty)."""
-        return max((pose[0] for pose in self.poses), default=-math.inf)
+        """The latest stamp added, s (-inf before the first)."""
+        return self._newest
 
     def at(self, stamp: float, max_gap: float, max_interval: float
            ) -> tuple[np.ndarray, np.ndarray] | str:

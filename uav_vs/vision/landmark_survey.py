@@ -7,7 +7,9 @@ see it. Both are measured here, with the vehicle standing still where the rig se
 1. every camera's frames go through the landmark detector (`LandmarkDetector`, the
    configured colour ranges); a landmark's centroid in a camera is the median over the
    frames that found it, kept when at least half of them did;
-2. the landmarks are triangulated (eq 24-25) from every camera that kept them;
+2. the landmarks are triangulated (eq 24-25) from every camera that kept them; a
+   landmark the cameras disagree on (reprojection RMS over `max_reproj_px`, after
+   leaving out each camera in turn) is refused;
 3. the world positions are brought into base_link (FLU) by the vehicle's placement, which
    the user defines: its body origin in the world frame (ENU, m) and its heading (the
    body x axis, rad counter-clockwise from east), standing level;
@@ -178,6 +180,10 @@ def survey(cameras: Sequence[Camera], models: Sequence[ColourModel], params: Det
             raise SurveyError(f'{name}: found by {len(seen)} camera(s) ({", ".join(seen) or "none"}'
                               f'), two are needed: check its colour ranges and that the '
                               f'cameras see it')
+        if not result.inlier[i]:
+            raise SurveyError(f'{name}: the cameras disagree on where it is (reprojection RMS '
+                              f'{result.reproj_px[i]:.1f} px > {max_reproj_px} px): another '
+                              f'object of its colour in view, or a camera off its calibration?')
     samples, sample_camera = {}, {}
     for i, name in enumerate(names):
         seen = [(row[i].window[2] * row[i].window[3], k) for k, row in enumerate(sightings)
