@@ -243,11 +243,11 @@ def test_the_cli_names_bad_input_in_one_line(shared_data, tmp_path):
 
 # ------------------------------------------------------------------ the rig's extrinsics
 def synthetic_rig(noise_px: float, seed: int = 0):
-    """The three ground cameras of config/ground_trinocular.yaml seeing a 0.8 x 0.6 m
-    chessboard at 30 random poses over the flight area, and once lying flat on the
+    """The three ground cameras of config/ground_trinocular.yaml seeing a 1.0 x 0.7 m
+    chessboard (7 x 10 squares of 0.1 m) at 30 random poses over the flight area, and once lying flat on the
     ground at the world origin (x along its first row): detections with pixel noise."""
     cameras = load_ground_config(read_params_file(default_config_path())).cameras
-    board = Board('chessboard', 7, 9, 0.1)
+    board = Board('chessboard', 7, 10, 0.1)
     objects = board.object_points().astype(np.float64)
     rng = np.random.default_rng(seed)
     detections = {c.name: {} for c in cameras}
@@ -299,6 +299,24 @@ def test_a_camera_sharing_no_view_is_named():
             del detections['cam3'][view]
     with pytest.raises(CalibrationInputError, match='cam3 never shares a view'):
         calibrate_rig(board, detections, intrinsics, 'ground')
+
+
+@pytest.mark.parametrize('board, symmetric', [
+    (Board('chessboard', 7, 10, 0.1), False), (Board('chessboard', 7, 9, 0.1), True),
+    (Board('chessboard', 6, 8, 0.1), True), (Board('circles', 4, 5, 0.1), True),
+    (Board('acircles', 11, 4, 0.1), False), (Board('acircles', 10, 4, 0.1), True)])
+def test_a_board_that_looks_the_same_turned_half_round_is_refused_for_a_rig(board, symmetric):
+    """Its half turn maps its points onto themselves exactly when it is refused."""
+    points = board.object_points()[:, :2].astype(np.float64)
+    turned = points.max(axis=0) + points.min(axis=0) - points
+    same = np.allclose(np.sort(np.round(turned, 6), axis=0), np.sort(np.round(points, 6), axis=0))
+    if board.kind == 'chessboard':   # the points alone are symmetric: the squares' colours tell
+        same = board.rows % 2 == board.cols % 2
+    assert board.point_symmetric == same == symmetric
+    cameras, _, detections, intrinsics = synthetic_rig(0.1)
+    if symmetric:
+        with pytest.raises(CalibrationInputError, match='looks the same turned half round'):
+            calibrate_rig(board, detections, intrinsics, 'ground')
 
 
 def by_sync_index(root, found: dict[str, Detection], cam: int) -> dict[str, Detection]:

@@ -103,6 +103,17 @@ class Board:
             raise CalibrationInputError(f'board file {path}: {err}') from None
 
     @property
+    def point_symmetric(self) -> bool:
+        """True when the board turned half round shows the same pattern, so that a detector
+        cannot tell its first point from its last: a chessboard whose rows and columns of
+        squares are both odd or both even, any symmetric circle grid, an asymmetric one
+        with an even number of rows. Cameras on opposite sides of such a board number
+        its points from opposite ends; ChArUco boards never are."""
+        if self.kind == 'chessboard':
+            return self.rows % 2 == self.cols % 2
+        return self.kind == 'circles' or (self.kind == 'acircles' and self.rows % 2 == 0)
+
+    @property
     def pattern(self) -> tuple[int, int]:
         """OpenCV's pattern size (points per row, per column)."""
         if self.kind in ('chessboard', 'charuco'):

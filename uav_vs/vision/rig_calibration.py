@@ -97,6 +97,12 @@ def calibrate_rig(board: Board, detections: dict[str, dict[str, Detection]],
     names = list(detections)
     if len(names) < 2:
         raise CalibrationInputError('a rig needs two cameras or more')
+    if board.point_symmetric:
+        raise CalibrationInputError(
+            f'a {board.kind} board of {board.rows} x {board.cols} looks the same turned half '
+            f'round, so cameras on opposite sides number its points from opposite ends: use '
+            f'a ChArUco board, or a chessboard with an odd number of squares one way and an '
+            f'even number the other (e.g. 7 x 10)')
     poses = {c: {v: board_pose(board, d, intrinsics[c]) for v, d in detections[c].items()}
              for c in names}
     counts: dict[str, int] = {}

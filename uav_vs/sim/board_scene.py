@@ -1,0 +1,120 @@
+"""A printed chessboard held in the ground cameras' view, rendered through each camera's
+own lens, for calibrating the simulated rig as a real one is calibrated
+(uav_vs.vision.calibration, uav_vs.vision.rig_calibration).
+
+As in uav_vs.sim.ground_scene, rendering is exact projection: every pixel is the mean of
+`supersample` x `supersample` viewing rays through it (`Camera.normalize`, the inverse
+of the distortion), each intersected with the board's plane and coloured by the square
+it meets (printed black and white, lit, with a white margin of one square), so the
+corners lie exactly where the camera model projects them and the squares' edges are
+anti-aliased as a lens and sensor blur them. Outside the board the camera sees the
+ground scene's background (grey); the board's back is plain grey card. Gaussian sensor
+noise is added.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from uav_vs.sim.camera_effects import GaussianNoise
+from uav_vs.vision.calibration import Board
+from uav_vs.vision.camera import Camera
+
+INK, PAPER, CARD = 40.0, 215.0, 120.0      # grey levels of a black square, white, the back
+
+
+class BoardScene:
+    """Renders `board` (a chessboard) at a pose in the world into each camera's image."""
+
+    def __init__(self, cameras: Sequence[Camera], board: Board,
+                 backgrounds: Sequence[np.ndarray] | None = None, supersample: int = 3,
+                 noise_sigma: float = 2.0, seed: int = 0):
+        if board.kind != 'chessboard':
+            raise ValueError(f'board kind: the scene renders a chessboard, got {board.kind!r}')
+        self.cameras = list(cameras)
+        self.board = board
+        self.supersample = supersample
+        self._rays = [_subpixel_rays(c, supersample) for c in self.cameras]
+        self._backgrounds = ([cv2.cvtColor(b, cv2.COLOR_BGR2GRAY) if b.ndim == 3 else b
+                              for b in backgrounds] if backgrounds is not None else
+                             [np.full((c.height, c.width), 128, np.uint8) for c in cameras])
+        s = board.square
+        # the printed sheet: the squares and a white margin of one square, board frame, m
+        self._sheet = (-2 * s, -2 * s, (board.cols) * s, (board.rows) * s)
+        self._noise = GaussianNoise(noise_sigma, (max(c.height for c in cameras),
+                                                  max(c.width for c in cameras)),
+                                    np.random.default_rng(seed))
+
+    def corners_in(self, T_world_board: np.ndarray) -> np.ndarray:
+        """(4, 3) world corners of the printed sheet at this pose."""
+        x0, y0, x1, y1 = self._sheet
+        local = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+        return local @ T_world_board[:3, :3].T + T_world_board[:3, 3]
+
+    def render(self, T_world_board: np.ndarray) -> list[np.ndarray]:
+        """BGR uint8 images (grey scenes), one per camera, of the board at `T_world_board`
+        (4x4, board frame -> world; the board frame is Board.object_points' own)."""
+        out = []
+        for k, cam in enumerate(self.cameras):
+            img = self._backgrounds[k].astype(np.float32)
+            window = self._window(cam, T_world_board)
+            if window is not None:
+                y0, y1, x0, x1 = window
+                img[y0:y1, x0:x1] = self._shade(k, T_world_board, window, img[y0:y1, x0:x1])
+            grey = np.clip(img, 0, 255).astype(np.uint8)
+            out.append(self._noise(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)))
+        return out
+
+    def _window(self, cam: Camera, T_world_board: np.ndarray
+                ) -> tuple[int, int, int, int] | None:
+        """Pixel rows and columns the sheet may cover (its corners' hull, one pixel more)."""
+        corners = self.corners_in(T_world_board)
+        if (cam.to_camera(corners)[:, 2] <= 0).any():
+            return None
+        px = cam.project(corners)
+        x0, y0 = np.floor(px.min(axis=0)).astype(int) - 1
+        x1, y1 = np.ceil(px.max(axis=0)).astype(int) + 2
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, cam.width), min(y1, cam.height)
+        return (y0, y1, x0, x1) if x1 > x0 and y1 > y0 else None
+
+    def _shade(self, k: int, T_world_board: np.ndarray, window: tuple[int, int, int, int],
+               background: np.ndarray) -> np.ndarray:
+        cam, n = self.cameras[k], self.supersample
+        y0, y1, x0, x1 = window
+        rays = self._rays[k][:, y0 * n:y1 * n, x0 * n:x1 * n].reshape(3, -1)
+        # the board in the camera frame: x_c = R_cb x_b + t_cb
+        T_cam_world = np.eye(4)
+        T_cam_world[:3, :3], T_cam_world[:3, 3] = cam.R, cam.t
+        T = T_cam_world @ T_world_board
+        R_cb, t_cb = T[:3, :3], T[:3, 3]
+        normal = R_cb[:, 2]
+        with np.errstate(divide='ignore', invalid='ignore'):
+            depth = (normal @ t_cb) / (normal @ rays)
+        hit = R_cb.T @ (rays * depth - t_cb[:, None])          # board coordinates, m
+        x_lo, y_lo, x_hi, y_hi = self._sheet
+        on = ((depth > 0) & (hit[0] >= x_lo) & (hit[0] <= x_hi)
+              & (hit[1] >= y_lo) & (hit[1] <= y_hi))
+        s, board = self.board.square, self.board
+        col, row = np.floor(hit[0] / s), np.floor(hit[1] / s)
+        squares = (col >= -1) & (col <= board.cols - 2) & (row >= -1) & (row <= board.rows - 2)
+        black = squares & ((col + row) % 2 == 1)      # OpenCV's first corner: see Board
+        front = normal @ t_cb > 0          # the camera is on the printed side
+        level = np.where(black, INK, PAPER) if front else np.full(black.shape, CARD)
+        h, w = y1 - y0, x1 - x0
+        back = np.repeat(np.repeat(background, n, axis=0), n, axis=1).reshape(-1)
+        value = np.where(on, level, back).reshape(h, n, w, n)
+        return value.mean(axis=(1, 3))
+
+
+def _subpixel_rays(cam: Camera, n: int) -> np.ndarray:
+    """Viewing rays (camera frame, z = 1) through an n x n grid inside every pixel,
+    (3, H n, W n) float32."""
+    offsets = (np.arange(n) + 0.5) / n - 0.5
+    v = np.arange(cam.height)[:, None] + offsets[None, :]
+    u = np.arange(cam.width)[:, None] + offsets[None, :]
+    vv, uu = np.meshgrid(v.ravel(), u.ravel(), indexing='ij')
+    xy = cam.normalize(np.column_stack([uu.ravel(), vv.ravel()]))
+    rays = np.vstack([xy.T, np.ones(len(xy))])
+    return rays.reshape(3, cam.height * n, cam.width * n).astype(np.float32)
