@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -89,11 +89,13 @@ def board_pose(board: Board, det: Detection, intr: Intrinsics) -> np.ndarray:
 
 
 def calibrate_rig(board: Board, detections: dict[str, dict[str, Detection]],
-                  intrinsics: dict[str, Intrinsics], ground_view: str) -> Rig:
+                  intrinsics: dict[str, Intrinsics], ground_view: str,
+                  refine_intrinsics: bool = False) -> Rig:
     """R, t of every camera (keys of `detections`, the first one the reference) from the
     views (by key) each saw, the world fixed by `ground_view`, a view in which the board
     lies on the ground. Every view takes part in the refinement, a camera's own views
-    too (they tie its board poses), the intrinsics held fixed."""
+    too (they tie its lens); `refine_intrinsics` frees K and the model's distortion
+    coefficients there, starting from `intrinsics`."""
     names = list(detections)
     if len(names) < 2:
         raise CalibrationInputError('a rig needs two cameras or more')
@@ -122,7 +124,8 @@ def calibrate_rig(board: Board, detections: dict[str, dict[str, Detection]],
     for v in sorted({v for c in names for v in poses[c]}):
         c = next(c for c in names if v in poses[c])
         boards[v] = np.linalg.inv(in_ref[c]) @ poses[c][v]
-    in_ref, boards, residuals = _refine(board, detections, intrinsics, names, in_ref, boards)
+    in_ref, intrinsics, boards, residuals = _refine(board, detections, intrinsics, names,
+                                                    in_ref, boards, refine_intrinsics)
     # world -> ref: world point -> board frame of the ground view -> ref frame
     world_to_board = np.eye(4)
     world_to_board[:3, :3] = BOARD_TO_WORLD.T
@@ -170,29 +173,47 @@ def _mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def _refine(board: Board, detections, intrinsics, names, in_ref, boards):
-    """Bundle adjustment: every camera pose (but the reference's) and every board pose
-    moved together to minimise every reprojection error of every view (soft-L1 loss)."""
+FREE_DISTORTION = {'pinhole': 0, 'k1': 1, 'plumb_bob': 5, 'rational': 8}
+
+
+def _refine(board: Board, detections, intrinsics, names, in_ref, boards, refine_intrinsics):
+    """Bundle adjustment: every camera pose (but the reference's), every board pose and,
+    with `refine_intrinsics`, every camera's fx, fy, cx, cy and free distortion
+    coefficients moved together to minimise every reprojection error of every view."""
     objects = board.object_points().astype(np.float64)
     views = list(boards)
     n_cam, n_view = len(names), len(views)
     index = {v: k for k, v in enumerate(views)}
+    free = [FREE_DISTORTION[intrinsics[c].model] if refine_intrinsics else 0 for c in names]
+    n_intr = [4 + f if refine_intrinsics else 0 for f in free]
     pose_at = [None] + [6 * k for k in range(n_cam - 1)]
-    board_at = 6 * (n_cam - 1)
-    lenses = [(intrinsics[c].K, intrinsics[c].D) for c in names]
+    intr_at = np.concatenate([[0], np.cumsum(n_intr)])[:-1] + 6 * (n_cam - 1)
+    board_at = 6 * (n_cam - 1) + sum(n_intr)
     obs = [(ci, c, v, detections[c][v]) for ci, c in enumerate(names)
            for v in views if v in detections[c]]
-    x0 = np.concatenate([_vector(in_ref[c]) for c in names[1:]]
-                        + [_vector(boards[v]) for v in views])
+    x0 = [_vector(in_ref[c]) for c in names[1:]]
+    for ci, c in enumerate(names):
+        if n_intr[ci]:
+            K, D = intrinsics[c].K, intrinsics[c].D
+            x0.append(np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], D[:free[ci]]]))
+    x0 = np.concatenate(x0 + [_vector(boards[v]) for v in views])
 
     def unpack(x):
         cams = [np.eye(4)] + [_matrix(x[k:k + 3], x[k + 3:k + 6]) for k in pose_at[1:]]
+        lenses = []
+        for ci, c in enumerate(names):
+            K, D = intrinsics[c].K.copy(), intrinsics[c].D.copy()
+            if n_intr[ci]:
+                q = x[intr_at[ci]:intr_at[ci] + n_intr[ci]]
+                K[0, 0], K[1, 1], K[0, 2], K[1, 2] = q[:4]
+                D[:free[ci]] = q[4:]
+            lenses.append((K, D))
         bds = [_matrix(x[board_at + 6 * k:board_at + 6 * k + 3],
                        x[board_at + 6 * k + 3:board_at + 6 * k + 6]) for k in range(n_view)]
-        return cams, bds
+        return cams, lenses, bds
 
     def residuals(x):
-        cams, bds = unpack(x)
+        cams, lenses, bds = unpack(x)
         out = []
         for ci, c, v, det in obs:
             T = cams[ci] @ bds[index[v]]
@@ -207,17 +228,19 @@ def _refine(board: Board, detections, intrinsics, names, in_ref, boards):
     for (ci, c, v, det), size in zip(obs, sizes):
         if ci > 0:
             sparsity[row:row + size, pose_at[ci]:pose_at[ci] + 6] = 1
+        sparsity[row:row + size, intr_at[ci]:intr_at[ci] + n_intr[ci]] = 1
         sparsity[row:row + size, board_at + 6 * index[v]:board_at + 6 * index[v] + 6] = 1
         row += size
     fit = least_squares(residuals, x0, jac_sparsity=sparsity, method='trf', x_scale='jac',
                         loss='soft_l1', f_scale=1.0)
-    cams, bds = unpack(fit.x)
+    cams, lenses, bds = unpack(fit.x)
+    refined = {c: replace(intrinsics[c], K=K, D=D) for c, (K, D) in zip(names, lenses)}
     errors: dict[str, list] = {c: [] for c in names}
     row = 0
     for (ci, c, v, det), size in zip(obs, sizes):
         errors[c].append(np.linalg.norm(fit.fun[row:row + size].reshape(-1, 2), axis=1))
         row += size
-    return (dict(zip(names, cams)), dict(zip(views, bds)),
+    return (dict(zip(names, cams)), refined, dict(zip(views, bds)),
             {c: np.concatenate(e) for c, e in errors.items()})
 
 
