@@ -139,6 +139,7 @@ def test_the_cli_surveys_the_landmarks_end_to_end(station, tmp_path, capsys):
     (lambda a: a[:a.index('--camera') + 2] + a[a.index('--placement'):],
      '--camera: two cameras or more are needed'),
     (lambda a: [x.replace('cam3=', 'cam9=') for x in a], '--camera cam9: not a camera of'),
+    (lambda a: a + ['--every', '0'], '--every: expected a whole number of frames >= 1'),
     (lambda a: [x.replace('config/ground_trinocular.yaml', 'config/onboard.yaml') for x in a],
      'cameras.names: expected a list'),
 ])

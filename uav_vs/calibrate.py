@@ -177,10 +177,14 @@ def board_of(args: argparse.Namespace) -> Board:
                  args.inverted)
 
 
-def intrinsics(args: argparse.Namespace) -> None:
+def check_every(args: argparse.Namespace) -> None:
     if args.every < 1:
         raise CalibrationInputError(f'--every: expected a whole number of frames >= 1, got '
-                               f'{args.every}')
+                                    f'{args.every}')
+
+
+def intrinsics(args: argparse.Namespace) -> None:
+    check_every(args)
     board = board_of(args)
     found, size, count = detect_all(board, read_images(args.inputs, args.every))
     print(f'{args.name}: the board found in {len(found)} of {count} images', flush=True)
@@ -224,6 +228,7 @@ def rig(args: argparse.Namespace) -> None:
 
 
 def landmarks(args: argparse.Namespace) -> None:
+    check_every(args)
     try:
         params = read_params_file(args.config)
         if args.cameras is not None:
