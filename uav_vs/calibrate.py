@@ -76,8 +76,8 @@ EPILOG = """examples:
       --model k1 circles-01.jpg circles-02.jpg circles-03.jpg
   uav_vs_calibrate rig --board board.yaml --camera cam1=cam1.mp4 --camera cam2=cam2.mp4 \\
       --camera cam3=cam3.mp4 --intrinsics calibration/ --ground 0
-  uav_vs_calibrate landmarks --config config/ground_trinocular.yaml \
-      --cameras calibration/cameras.yaml --camera cam1=still1/ --camera cam2=still2/ \
+  uav_vs_calibrate landmarks --config config/ground_trinocular.yaml \\
+      --cameras calibration/cameras.yaml --camera cam1=still1/ --camera cam2=still2/ \\
       --camera cam3=still3/ --placement 1.0 0.5 0.25 90
 
 board.yaml: kind (chessboard, charuco, circles, acircles), rows, cols (squares of a
