@@ -16,7 +16,7 @@ the views dropped and why (blurred, too oblique, outliers), the image coverage.
 The poses of a rig of cameras filming the board together, in the world frame of one
 view where the board lies on the ground (REP-103: x along the board's first row, z up):
 
-    uav_vs_calibrate rig --board board.yaml --camera cam1=cam1.mp4 --camera cam2=cam2.mp4 \
+    uav_vs_calibrate rig --board board.yaml --camera cam1=cam1.mp4 --camera cam2=cam2.mp4 \\
         --camera cam3=cam3.mp4 --intrinsics calibration/ --ground 0
 
 matches the cameras' frames by index (or by a `--sync` CSV of sync_index, camera,
@@ -28,8 +28,8 @@ The landmarks' positions on the vehicle and their colour samples, from frames of
 calibrated rig with the vehicle standing still at a placement the user chooses (its body
 origin in the world and its heading, deg counter-clockwise from east):
 
-    uav_vs_calibrate landmarks --config config/ground_trinocular.yaml \
-        --cameras calibration/cameras.yaml --camera cam1=still1/ --camera cam2=still2/ \
+    uav_vs_calibrate landmarks --config config/ground_trinocular.yaml \\
+        --cameras calibration/cameras.yaml --camera cam1=still1/ --camera cam2=still2/ \\
         --camera cam3=still3/ --placement 1.0 0.5 0.25 90 --out calibration/
 
 finds each landmark by the configured colour ranges (uav_vs.vision.landmark_survey),

@@ -4,12 +4,12 @@ ground station's R, t of eq 16), in the world frame a board lying on the ground 
 Each camera's intrinsics are known (uav_vs.vision.calibration). Every view of the board
 by a camera gives the board's pose in that camera (cv2.solvePnP); the views two cameras
 share give their relative pose, chained from the first camera through the others, and
-a joint refinement (scipy.optimize.least_squares, with the Jacobian's sparsity) moves
-every camera pose and every board pose to minimise the reprojection error of every
-board point in every camera, the intrinsics held fixed. The world frame (REP-103: ENU,
-z up) is the board's in one view where it lies flat on the ground: origin at its first
-point, x along its first row, z up out of the board. `neighbour_errors` checks a rig
-against the board itself.
+a joint refinement (scipy.optimize.least_squares, with an analytic sparse Jacobian)
+moves every camera pose and every board pose to minimise the reprojection error of
+every board point in every camera, the intrinsics held fixed or refined with them. The
+world frame (REP-103: ENU, z up) is the board's in one view where it lies flat on the
+ground: origin at its first point, x along its first row, z up out of the board.
+`neighbour_errors` checks a rig against the board itself.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import yaml
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import csr_matrix
 
 from uav_vs.vision.calibration import Board, CalibrationInputError, Detection, Intrinsics
 from uav_vs.vision.camera import Camera
@@ -61,6 +61,9 @@ class Rig:
             lines.append(f'  {cam.name}: at ({x:.3f}, {y:.3f}, {z:.3f}) m, '
                          f'{self.shared_views[cam.name]} shared views, RMS '
                          f'{self.camera_rms[cam.name]:.3f} px')
+            K = cam.intrinsics.K
+            lines.append(f'    fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy '
+                         f'{K[1, 2]:.2f} px, D {np.array2string(cam.intrinsics.D, precision=5)}')
         return lines
 
     def cameras_yaml(self) -> str:
@@ -179,17 +182,21 @@ FREE_DISTORTION = {'pinhole': 0, 'k1': 1, 'plumb_bob': 5, 'rational': 8}
 def _refine(board: Board, detections, intrinsics, names, in_ref, boards, refine_intrinsics):
     """Bundle adjustment: every camera pose (but the reference's), every board pose and,
     with `refine_intrinsics`, every camera's fx, fy, cx, cy and free distortion
-    coefficients moved together to minimise every reprojection error of every view."""
+    coefficients moved together to minimise every reprojection error of every view.
+
+    The Jacobian is analytic and sparse: cv2.projectPoints gives the derivatives of each
+    view's pixels by its pose and the camera's intrinsics, cv2.composeRT those of the
+    composed pose by the camera's and the board's."""
     objects = board.object_points().astype(np.float64)
     views = list(boards)
-    n_cam, n_view = len(names), len(views)
+    n_cam = len(names)
     index = {v: k for k, v in enumerate(views)}
     free = [FREE_DISTORTION[intrinsics[c].model] if refine_intrinsics else 0 for c in names]
     n_intr = [4 + f if refine_intrinsics else 0 for f in free]
-    pose_at = [None] + [6 * k for k in range(n_cam - 1)]
+    pose_at = [-1] + [6 * k for k in range(n_cam - 1)]
     intr_at = np.concatenate([[0], np.cumsum(n_intr)])[:-1] + 6 * (n_cam - 1)
     board_at = 6 * (n_cam - 1) + sum(n_intr)
-    obs = [(ci, c, v, detections[c][v]) for ci, c in enumerate(names)
+    obs = [(ci, index[v], detections[c][v]) for ci, c in enumerate(names)
            for v in views if v in detections[c]]
     x0 = [_vector(in_ref[c]) for c in names[1:]]
     for ci, c in enumerate(names):
@@ -197,49 +204,76 @@ def _refine(board: Board, detections, intrinsics, names, in_ref, boards, refine_
             K, D = intrinsics[c].K, intrinsics[c].D
             x0.append(np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], D[:free[ci]]]))
     x0 = np.concatenate(x0 + [_vector(boards[v]) for v in views])
+    sizes = [2 * len(det.ids) for *_, det in obs]
+    starts = np.concatenate([[0], np.cumsum(sizes)])
 
-    def unpack(x):
-        cams = [np.eye(4)] + [_matrix(x[k:k + 3], x[k + 3:k + 6]) for k in pose_at[1:]]
-        lenses = []
+    def lenses(x):
+        out = []
         for ci, c in enumerate(names):
-            K, D = intrinsics[c].K.copy(), intrinsics[c].D.copy()
+            K, D = intrinsics[c].K.copy(), intrinsics[c].D.astype(np.float64).copy()
             if n_intr[ci]:
                 q = x[intr_at[ci]:intr_at[ci] + n_intr[ci]]
                 K[0, 0], K[1, 1], K[0, 2], K[1, 2] = q[:4]
                 D[:free[ci]] = q[4:]
-            lenses.append((K, D))
-        bds = [_matrix(x[board_at + 6 * k:board_at + 6 * k + 3],
-                       x[board_at + 6 * k + 3:board_at + 6 * k + 6]) for k in range(n_view)]
-        return cams, lenses, bds
+            out.append((K, D))
+        return out
 
-    def residuals(x):
-        cams, lenses, bds = unpack(x)
-        out = []
-        for ci, c, v, det in obs:
-            T = cams[ci] @ bds[index[v]]
-            px, _ = cv2.projectPoints(objects[det.ids], cv2.Rodrigues(T[:3, :3])[0], T[:3, 3],
-                                      *lenses[ci])
-            out.append((px.reshape(-1, 2) - det.points).ravel())
-        return np.concatenate(out)
+    def project(x, with_jacobian: bool):
+        """Every residual and, with_jacobian, the sparse Jacobian's (rows, cols, values)."""
+        lens = lenses(x)
+        res, rows, cols, vals = [], [], [], []
+        for (ci, vi, det), row in zip(obs, starts):
+            at = board_at + 6 * vi
+            rb, tb = x[at:at + 3], x[at + 3:at + 6]
+            if ci == 0:
+                r, t = rb, tb
+            else:
+                rc, tc = x[pose_at[ci]:pose_at[ci] + 3], x[pose_at[ci] + 3:pose_at[ci] + 6]
+                r, t, *d = cv2.composeRT(rb, tb, rc, tc)     # camera after board
+            px, J = cv2.projectPoints(objects[det.ids], r, t, *lens[ci])
+            res.append(px.reshape(-1) - det.points.reshape(-1))
+            if not with_jacobian:
+                continue
+            J_pose = J[:, :6]                                  # by the composed r, t
+            blocks = []
+            if ci == 0:
+                blocks.append((board_at + 6 * vi, J_pose))
+            else:
+                dr_drb, dr_dtb, dr_drc, dr_dtc, dt_drb, dt_dtb, dt_drc, dt_dtc = d
+                by_board = np.block([[dr_drb, dr_dtb], [dt_drb, dt_dtb]])
+                by_camera = np.block([[dr_drc, dr_dtc], [dt_drc, dt_dtc]])
+                blocks += [(board_at + 6 * vi, J_pose @ by_board),
+                           (pose_at[ci], J_pose @ by_camera)]
+            if n_intr[ci]:
+                blocks.append((intr_at[ci], np.hstack([J[:, 6:10], J[:, 10:10 + free[ci]]])))
+            n = J.shape[0]
+            for col, block in blocks:
+                r_idx, c_idx = np.meshgrid(np.arange(row, row + n),
+                                           col + np.arange(block.shape[1]), indexing='ij')
+                rows.append(r_idx.ravel())
+                cols.append(c_idx.ravel())
+                vals.append(block.ravel())
+        fun = np.concatenate(res)
+        return fun, (rows, cols, vals)
 
-    sizes = [2 * len(det.ids) for *_, det in obs]
-    sparsity = lil_matrix((sum(sizes), x0.size), dtype=int)
-    row = 0
-    for (ci, c, v, det), size in zip(obs, sizes):
-        if ci > 0:
-            sparsity[row:row + size, pose_at[ci]:pose_at[ci] + 6] = 1
-        sparsity[row:row + size, intr_at[ci]:intr_at[ci] + n_intr[ci]] = 1
-        sparsity[row:row + size, board_at + 6 * index[v]:board_at + 6 * index[v] + 6] = 1
-        row += size
-    fit = least_squares(residuals, x0, jac_sparsity=sparsity, method='trf', x_scale='jac',
-                        loss='soft_l1', f_scale=1.0)
-    cams, lenses, bds = unpack(fit.x)
-    refined = {c: replace(intrinsics[c], K=K, D=D) for c, (K, D) in zip(names, lenses)}
+    def jacobian(x):
+        _, (rows, cols, vals) = project(x, True)
+        return csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(starts[-1], x0.size))
+
+    # lsmr solved to machine precision: its default, inexact steps take hundreds of
+    # iterations on this problem, exact ones a few tens
+    fit = least_squares(lambda x: project(x, False)[0], x0, jac=jacobian, method='trf',
+                        x_scale='jac', loss='soft_l1', f_scale=1.0,
+                        tr_options={'atol': 1e-12, 'btol': 1e-12})
+    x = fit.x
+    cams = [np.eye(4)] + [_matrix(x[k:k + 3], x[k + 3:k + 6]) for k in pose_at[1:]]
+    bds = [_matrix(x[board_at + 6 * k:board_at + 6 * k + 3],
+                   x[board_at + 6 * k + 3:board_at + 6 * k + 6]) for k in range(len(views))]
+    refined = {c: replace(intrinsics[c], K=K, D=D) for c, (K, D) in zip(names, lenses(x))}
     errors: dict[str, list] = {c: [] for c in names}
-    row = 0
-    for (ci, c, v, det), size in zip(obs, sizes):
-        errors[c].append(np.linalg.norm(fit.fun[row:row + size].reshape(-1, 2), axis=1))
-        row += size
+    for (ci, _, _), row, size in zip(obs, starts, sizes):
+        errors[names[ci]].append(np.linalg.norm(fit.fun[row:row + size].reshape(-1, 2), axis=1))
     return (dict(zip(names, cams)), refined, dict(zip(views, bds)),
             {c: np.concatenate(e) for c, e in errors.items()})
 
