@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from uav_vs.sim.board_scene import BoardScene
+from uav_vs.sim.board_scene import BoardScene, in_front_of
 from uav_vs.vision.calibration import Board, detect
 from uav_vs.vision.camera import Camera
 from uav_vs.vision.ground_config import default_config_path, load_ground_config, read_params_file
@@ -19,14 +19,8 @@ def scene() -> BoardScene:
 
 
 def held_before(cam: Camera, distance: float, rvec=(0.35, -0.25, 0.1)) -> np.ndarray:
-    """4x4 board -> world pose of the board `distance` m in front of `cam`, tilted."""
-    R_cb = cv2.Rodrigues(np.array(rvec, np.float64))[0]
-    T_cb = np.eye(4)
-    T_cb[:3, :3] = R_cb
-    T_cb[:3, 3] = np.array([0.2, -0.1, distance]) - R_cb @ BOARD.object_points().mean(axis=0)
-    T_cw = np.eye(4)
-    T_cw[:3, :3], T_cw[:3, 3] = cam.R, cam.t
-    return np.linalg.inv(T_cw) @ T_cb
+    """The board `distance` m before `cam`, a little right of and above its centre, tilted."""
+    return in_front_of(cam, BOARD, (0.55 * cam.width, 0.45 * cam.height), distance, rvec)
 
 
 @pytest.mark.parametrize('distance', [2.0, 3.0])

@@ -12,7 +12,8 @@ import yaml
 from uav_vs.calibrate import main
 from uav_vs.sim.ground_scene import GroundScene, Pose, figure_eight, rot_z
 from uav_vs.vision.colour_model import models_from_params
-from uav_vs.vision.ground_config import default_config_path, load_ground_config, read_params_file
+from uav_vs.vision.ground_config import (default_config_path, flat_params, load_ground_config,
+                                         read_params_file)
 from uav_vs.vision.landmark_survey import Placement, SurveyError, detector_params, survey
 from uav_vs.vision.landmarks import LandmarkDetector
 
@@ -123,16 +124,17 @@ def test_the_cli_surveys_the_landmarks_end_to_end(station, tmp_path, capsys):
     assert 'red: base_link' in capsys.readouterr().out
     surveyed = yaml.safe_load((out / 'landmarks.yaml').read_text())['landmarks']
     new = {k: v for k, v in params.items() if not k.startswith('landmarks.')}
-    for name in surveyed['names']:
-        for key, value in surveyed[name].items():
-            new[f'landmarks.{name}.{key}'] = value
-    new['landmarks.names'] = surveyed['names']
+    new |= flat_params(surveyed, 'landmarks.')
     layout = load_ground_config(new).layout
     assert (np.linalg.norm(layout - config.layout, axis=1) < LAYOUT_TOLERANCE).all()
     for name in surveyed['names']:
         sample = cv2.imread(surveyed[name]['sample'], cv2.IMREAD_UNCHANGED)
         assert sample is not None and sample.shape[2] == 4
     assert (out / 'landmarks_report.txt').read_text().startswith('landmarks surveyed from cam')
+    # the params file to fly with: the calibrated cameras, the surveyed landmarks, the rest
+    # of the config as it was
+    ready = read_params_file(out / 'ground_trinocular.yaml')
+    assert ready == new | {f'cameras.{k}': v for k, v in flat_params(block['cameras']).items()}
 
 
 @pytest.mark.parametrize('change, message', [

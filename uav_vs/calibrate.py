@@ -35,7 +35,9 @@ origin in the world and its heading, deg counter-clockwise from east):
 finds each landmark by the configured colour ranges (uav_vs.vision.landmark_survey),
 triangulates it, and writes `<out>/landmarks.yaml`, the `landmarks` block of
 config/ground_trinocular.yaml with `position` in base_link and `sample`, the images
-`<out>/<name>.png` it cut, and `<out>/landmarks_report.txt`.
+`<out>/<name>.png` it cut, `<out>/landmarks_report.txt`, and the ground station's params
+file ready to fly: the `--config` file with the cameras of `--cameras` and these
+landmarks, under the same name in `<out>`.
 
 Bad input (no board found, too few views, images of different sizes, a file that is
 neither an image nor a decodable video, a camera that never shares a view with the
@@ -48,6 +50,7 @@ import csv
 import math
 import os
 import sys
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import cv2
@@ -209,12 +212,12 @@ def rig(args: argparse.Namespace) -> None:
     detections, intrinsics = {}, {}
     for name, path in sources.items():
         intrinsics[name] = read_camera_info(args.intrinsics / f'{name}.yaml')
-        found, size, count = detect_all(board, read_images([path]))
+        index: dict[str, int] = {}       # frame index of each image, found or not
+        found, size, count = detect_all(board, numbered(read_images([path]), index))
         if size != intrinsics[name].size:
             raise CalibrationInputError(f'{name}: images {size[0]}x{size[1]}, its camera_info '
                                         f'{intrinsics[name].size[0]}x{intrinsics[name].size[1]}')
-        frames = {int(key.rpartition('#')[2]) if '#' in key else k: det
-                  for k, (key, det) in enumerate(found.items())}
+        frames = {index[key]: det for key, det in found.items()}
         if sync is not None:
             frames = {sync[name, f]: det for f, det in frames.items() if (name, f) in sync}
         detections[name] = {str(f): det for f, det in frames.items()}
@@ -263,8 +266,37 @@ def landmarks(args: argparse.Namespace) -> None:
     report = '\n'.join(result.report()) + '\n'
     (args.out / 'landmarks.yaml').write_text(result.landmarks_yaml(params, paths))
     (args.out / 'landmarks_report.txt').write_text(report)
-    print(report + f'wrote {args.out / "landmarks.yaml"}, landmarks_report.txt and the '
-                   f'samples {", ".join(p.name for p in paths.values())}')
+    config_out = args.out / args.config.name
+    if config_out.resolve() == args.config.resolve():
+        config_out = args.out / f'calibrated_{args.config.name}'
+    config_out.write_text(calibrated_config(args.config, args.cameras,
+                                            result.landmarks_block(params, paths)))
+    print(report + f'wrote {args.out / "landmarks.yaml"}, landmarks_report.txt, the '
+                   f'samples {", ".join(p.name for p in paths.values())} and {config_out}, '
+                   f'the ground station\'s params file with them')
+
+
+def numbered(images: Iterable[tuple[str, np.ndarray]], index: dict[str, int]
+             ) -> Iterator[tuple[str, np.ndarray]]:
+    """`images` as they are, noting each one's frame index in `index`: a video frame's
+    own ('<video>#<frame>'), else its place among the images."""
+    for k, (name, image) in enumerate(images):
+        index[name] = int(name.rpartition('#')[2]) if '#' in name else k
+        yield name, image
+
+
+def calibrated_config(config: Path, cameras: Path | None, landmarks_block: dict) -> str:
+    """The ground params file `config` with the cameras block of `cameras` (as `rig`
+    writes it; None keeps the config's own) and `landmarks_block`: ready for the ground
+    station's nodes (`--params-file`)."""
+    doc = yaml.safe_load(config.read_text())
+    params = doc['/**']['ros__parameters']
+    if cameras is not None:
+        params['cameras'] = yaml.safe_load(cameras.read_text())['cameras']
+    params['landmarks'] = landmarks_block
+    return (f'# {config.name} with the cameras calibrated and the landmarks surveyed by\n'
+            f'# uav_vs_calibrate; every key is documented in {config.name} as shipped.\n'
+            + yaml.safe_dump(doc, sort_keys=False, width=100))
 
 
 def read_cameras_block(path: Path) -> dict[str, object]:

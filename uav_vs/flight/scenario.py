@@ -129,6 +129,9 @@ class Configs:
     controller: Path = default_config_path('fuzzy_controller.yaml')
     relay: Path = default_config_path('mavlink_relay.yaml')
     ground_layout: str = DEFAULT_LAYOUT
+    # The ground rig as it really is, which sim_world renders, when the ground station is
+    # given another calibration in `ground` (one solved by uav_vs_calibrate); default: ground.
+    world_ground: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -232,7 +235,7 @@ class _Mission:
             self._start('bag_record', 'bag_record', [], args=['-o', str(self.bag),
                                                                *recorded_topics(cameras)])
         self._start('sim_world', 'sim_world', [
-            '--params-file', str(c.ground), '--params-file', str(c.onboard),
+            '--params-file', str(c.world_ground or c.ground), '--params-file', str(c.onboard),
             '--params-file', str(c.world),
             *(['--params-file', str(c.sensors)] if c.sensors else []), *vehicle,
             *(['-p', 'ground_target.enabled:=true'] if self.scenario.follow else [])])

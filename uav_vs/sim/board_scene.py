@@ -10,6 +10,10 @@ corners lie exactly where the camera model projects them and the squares' edges 
 anti-aliased as a lens and sensor blur them. Outside the board the camera sees the
 ground scene's background (grey); the board's back is plain grey card. Gaussian sensor
 noise is added.
+
+The poses a user moves the board through to calibrate a rig: `close_ups` before each
+camera alone (its intrinsics), `through_the_volume` where the cameras see it together
+(the rig), and `on_the_ground`, flat at the world's origin (the world frame).
 """
 from __future__ import annotations
 
@@ -21,6 +25,7 @@ import numpy as np
 from uav_vs.sim.camera_effects import GaussianNoise
 from uav_vs.vision.calibration import Board
 from uav_vs.vision.camera import Camera
+from uav_vs.vision.rig_calibration import BOARD_TO_WORLD
 
 INK, PAPER, CARD = 40.0, 215.0, 120.0      # grey levels of a black square, white, the back
 
@@ -118,3 +123,56 @@ def _subpixel_rays(cam: Camera, n: int) -> np.ndarray:
     xy = cam.normalize(np.column_stack([uu.ravel(), vv.ravel()]))
     rays = np.vstack([xy.T, np.ones(len(xy))])
     return rays.reshape(3, cam.height * n, cam.width * n).astype(np.float32)
+
+
+def pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def in_front_of(camera: Camera, board: Board, pixel: Sequence[float], distance: float,
+                rvec: Sequence[float]) -> np.ndarray:
+    """4x4 board -> world pose of `board` with its centre `distance` m along the ray
+    through `pixel`, facing `camera` turned by `rvec` (axis-angle, rad, camera frame)."""
+    ray = np.append(camera.normalize(np.asarray(pixel, float)[None])[0], 1.0)
+    R_cb = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
+    t_cb = ray / np.linalg.norm(ray) * distance - R_cb @ board.object_points().mean(axis=0)
+    return pose(camera.R.T @ R_cb, camera.R.T @ (t_cb - camera.t))
+
+
+def close_ups(camera: Camera, board: Board, count: int, rng: np.random.Generator,
+              distance: tuple[float, float] = (2.0, 3.0), tilt_deg: tuple[float, float] = (15, 45),
+              margin: float = 0.2) -> list[np.ndarray]:
+    """Board poses for one camera's intrinsics: `distance` m before it, its centre anywhere
+    but the image's outer `margin`, tilted `tilt_deg` about a random axis."""
+    out = []
+    size = np.array([camera.width, camera.height], float)
+    for _ in range(count):
+        pixel = rng.uniform(margin * size, (1 - margin) * size)
+        axis = rng.normal(size=3)
+        rvec = axis / np.linalg.norm(axis) * np.radians(rng.uniform(*tilt_deg))
+        out.append(in_front_of(camera, board, pixel, rng.uniform(*distance), rvec))
+    return out
+
+
+def through_the_volume(board: Board, count: int, rng: np.random.Generator,
+                       half_width: float = 1.2, heights: tuple[float, float] = (0.3, 1.8),
+                       max_tilt_deg: float = 35.0) -> list[np.ndarray]:
+    """Board poses for the rig: face up over the flight area (centre within `half_width`
+    m of the origin, at `heights` m), tilted up to `max_tilt_deg` about a random axis."""
+    centre = board.object_points().mean(axis=0)
+    out = []
+    for _ in range(count):
+        axis = rng.normal(size=3)
+        rvec = axis / np.linalg.norm(axis) * np.radians(rng.uniform(0.0, max_tilt_deg))
+        R = cv2.Rodrigues(rvec)[0] @ BOARD_TO_WORLD
+        at = np.array([*rng.uniform(-half_width, half_width, 2), rng.uniform(*heights)])
+        out.append(pose(R, at - R @ centre))
+    return out
+
+
+def on_the_ground() -> np.ndarray:
+    """The board flat on the ground, its first point at the world's origin and its first
+    row along x: the view that fixes the world frame (uav_vs.vision.rig_calibration)."""
+    return pose(BOARD_TO_WORLD, np.zeros(3))

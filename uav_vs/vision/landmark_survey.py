@@ -97,6 +97,12 @@ class Survey:
 
     def landmarks_yaml(self, params: Mapping[str, object], sample_paths: Mapping[str, str]
                        ) -> str:
+        """The `landmarks` block of config/ground_trinocular.yaml, as YAML."""
+        return yaml.safe_dump({'landmarks': self.landmarks_block(params, sample_paths)},
+                              sort_keys=False, width=100)
+
+    def landmarks_block(self, params: Mapping[str, object], sample_paths: Mapping[str, str]
+                        ) -> dict:
         """The `landmarks` block of config/ground_trinocular.yaml: the surveyed positions and
         samples, with the colour ranges, radius and areas of `params` (flat, as read)."""
         block: dict = {'names': list(self.names)}
@@ -109,7 +115,7 @@ class Survey:
                     entry[key] = params[f'landmarks.{name}.{key}']
             entry['sample'] = str(sample_paths[name])
             block[name] = entry
-        return yaml.safe_dump({'landmarks': block}, sort_keys=False, width=100)
+        return block
 
 
 def detector_params(params: Mapping[str, object]) -> DetectorParams:
