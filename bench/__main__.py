@@ -17,6 +17,7 @@ SUITES = {
     'graph': ['graph_latency'],
     'sim': ['camera_effects'],
     'calibration': ['calibration'],
+    'fusion': ['pose_filter'],
 }
 
 
