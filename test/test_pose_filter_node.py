@@ -1,0 +1,96 @@
+"""pose_filter_node: poses in, one fused estimate out (uav_vs.control.pose_filter).
+
+Two sources publish noisy poses of a vehicle moving at constant velocity, stamped with
+the time they stand for, so every fused estimate has an analytic answer at its own stamp;
+malformed input is counted and skipped; when the sources stop the node goes quiet; a
+bad parameter stops it with one line."""
+import math
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Header
+
+from conftest import REPO, wait_for
+from uav_vs.graph import executable
+from uav_vs.ros.convert import msg_to_odometry, pose_to_msg, stamp_to_ns, yaw_quaternion
+from uav_vs.vision.ground_config import read_params_file
+
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+VELOCITY, START = np.array([0.4, -0.2, 0.1]), np.array([1.0, 0.5, 1.5])
+SIGMAS = {'ground': 0.03, 'onboard': 0.05}
+
+
+def test_two_sources_fused_better_than_either_and_quiet_when_they_stop(ros_node, processes):
+    processes('pose_filter_node', ['-p', 'pose_filter.accel_sigma:=0.5',
+                                   '-p', 'pose_filter.position_sigmas:=[0.03, 0.05]',
+                                   '-p', 'pose_filter.timeout:=0.3',
+                                   '-p', 'pose_filter.diagnostics_period:=0.1'], label='filter')
+    fused: list[Odometry] = []
+    diagnostics: list[dict] = []
+    ros_node.create_subscription(Odometry, '/fused/odom', fused.append, RELIABLE)
+    ros_node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: diagnostics.extend(
+        {'level': s.level[0], 'message': s.message, **{kv.key: kv.value for kv in s.values}}
+        for s in m.status if s.name == '/pose_filter_node'), RELIABLE)
+    pubs = {s: ros_node.create_publisher(PoseStamped, f'/{s}/pose', RELIABLE) for s in SIGMAS}
+    assert wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 30)
+
+    clock, rng = ros_node.get_clock(), np.random.default_rng(0)
+    t0 = clock.now().nanoseconds * 1e-9
+    truth = lambda t: START + VELOCITY * (t - t0)           # noqa: E731
+    raw, last = [], 0.0
+    # Malformed: a pose in another frame, one with no rotation.
+    now = clock.now()
+    pubs['ground'].publish(pose_to_msg(START, yaw_quaternion(0.0),
+                                       Header(stamp=now.to_msg(), frame_id='map')))
+    pubs['ground'].publish(pose_to_msg(START, np.zeros(4),
+                                       Header(stamp=now.to_msg(), frame_id='world')))
+    for _ in range(90):                                      # 3 s at 30 Hz
+        now = clock.now()
+        last = now.nanoseconds * 1e-9
+        for source, sigma in SIGMAS.items():
+            measured = truth(last) + rng.normal(0.0, sigma, 3)
+            if source == 'ground':
+                raw.append(np.linalg.norm(measured - truth(last)))
+            pubs[source].publish(pose_to_msg(measured, yaw_quaternion(0.5),
+                                             Header(stamp=now.to_msg(), frame_id='world')))
+        time.sleep(1 / 30)
+    assert wait_for(lambda: diagnostics and diagnostics[-1]['level'] == 2, 10), diagnostics[-1:]
+    assert diagnostics[-1]['message'].startswith('no measurement for')
+    assert diagnostics[-1]['malformed'] == '2'
+    assert int(diagnostics[-1]['ground/pose.applied']) >= 85
+
+    stamps = np.array([stamp_to_ns(m.header.stamp) * 1e-9 for m in fused])
+    assert len(fused) > 50 and stamps.max() <= last + 0.3 + 0.05     # quiet after the timeout
+    errors, sigmas = [], []
+    for msg, t in zip(fused, stamps):
+        if t0 + 1.0 < t <= last:
+            position, q, v_body, _ = msg_to_odometry(msg)
+            errors.append(np.linalg.norm(position - truth(t)))
+            sigmas.append(math.sqrt(msg.pose.covariance[0]))
+            assert msg.header.frame_id == 'world' and msg.child_frame_id == 'base_link'
+    rmse = math.sqrt(np.mean(np.square(errors)))
+    assert len(errors) > 50 and rmse < 0.7 * math.sqrt(np.mean(np.square(raw))), rmse
+    assert 0.0 < np.median(sigmas) < 0.03
+
+
+def test_a_bad_parameter_stops_the_node_with_one_line(tmp_path: Path):
+    run = subprocess.run([executable('pose_filter_node'), '--ros-args',
+                          '-p', 'pose_filter.position_sigmas:=[0.03]'],
+                         capture_output=True, text=True, timeout=60, cwd=tmp_path,
+                         stdin=subprocess.DEVNULL)
+    assert run.returncode == 2
+    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
+    assert len(fatal) == 1 and 'pose_filter.position_sigmas' in fatal[0], run.stdout + run.stderr
+
+
+def test_every_parameter_is_in_the_yaml_with_its_default():
+    from uav_vs.nodes.pose_filter_node import PARAMS
+
+    yaml = read_params_file(REPO / 'config' / 'pose_filter.yaml')
+    assert yaml == {spec.name: spec.default for spec in PARAMS}
