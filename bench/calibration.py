@@ -20,10 +20,10 @@ import numpy as np
 
 from bench.common import report, timeit
 from uav_vs.datasets import HOW_TO_GET, shared_data_dir
-from uav_vs.vision.calibration import (Board, Detection, Intrinsics, calibrate_camera,
-                                       detect_all, read_images)
+from uav_vs.sim.board_scene import on_the_ground, seen_points, through_the_volume
+from uav_vs.vision.calibration import Board, Intrinsics, calibrate_camera, detect_all, read_images
 from uav_vs.vision.camera import Camera, look_at
-from uav_vs.vision.rig_calibration import BOARD_TO_WORLD, calibrate_rig, neighbour_errors
+from uav_vs.vision.rig_calibration import calibrate_rig, neighbour_errors
 
 SUITE = 'calibration'
 VISP = (276.509794, 272.9594743, 163.8652259, 113.304585)    # px, py, u0, v0 published
@@ -98,25 +98,11 @@ def rig_4x100() -> None:
                                                               np.array([0.0, 0.0, 1.0])))
                for k, (x, y) in enumerate([(5, 5), (-5, 5), (-5, -5), (5, -5)])]
     board = Board('chessboard', 7, 10, 0.1)
-    objects = board.object_points().astype(np.float64)
     rng = np.random.default_rng(0)
-    detections = {c.name: {} for c in cameras}
-    for view in ['ground', *map(str, range(99))]:
-        R, t = BOARD_TO_WORLD, np.zeros(3)
-        if view != 'ground':
-            rvec = rng.normal(size=3)
-            rvec *= np.radians(rng.uniform(0, 40)) / np.linalg.norm(rvec)
-            R = cv2.Rodrigues(rvec)[0] @ BOARD_TO_WORLD
-            t = np.array([*rng.uniform(-1.5, 1.5, 2), rng.uniform(0.3, 2.0)]) - \
-                R @ objects.mean(axis=0)
-        world = objects @ R.T + t
-        for cam in cameras:
-            px = cam.project(world)
-            facing = (R @ [0.0, 0.0, -1.0]) @ (cam.center - world.mean(axis=0)) > 0
-            if facing and (px > 0).all() and (px < (cam.width, cam.height)).all():
-                px = px + rng.normal(0.0, 0.2, px.shape)
-                detections[cam.name][view] = Detection(np.arange(len(px), dtype=np.int32),
-                                                       px.astype(np.float32))
+    waved = through_the_volume(board, 99, rng, half_width=1.5, heights=(0.3, 2.0),
+                               max_tilt_deg=40.0)
+    poses = {'ground': on_the_ground(), **{str(k): T for k, T in enumerate(waved)}}
+    detections = seen_points(cameras, board, poses, 0.2, rng)
     intrinsics = {c.name: Intrinsics(K, D, 'plumb_bob', (1280, 720), np.nan, {}, {}, np.nan)
                   for c in cameras}
     for refine in (False, True):

@@ -16,13 +16,14 @@ import numpy as np
 import pytest
 import yaml
 
+from uav_vs.sim.board_scene import on_the_ground, seen_points, through_the_volume
 from uav_vs.vision.calibration import (Board, CalibrationInputError, Detection, Intrinsics,
                                        calibrate_camera, camera_info_yaml, coverage, detect,
                                        detect_all, read_images)
 from uav_vs.vision.camera import Camera
 from uav_vs.vision.ground_config import (default_config_path, flat_params, load_ground_config,
                                          read_params_file)
-from uav_vs.vision.rig_calibration import BOARD_TO_WORLD, calibrate_rig, neighbour_errors
+from uav_vs.vision.rig_calibration import calibrate_rig, neighbour_errors
 
 K_TRUE = np.array([[820.0, 0.0, 652.0], [0.0, 815.0, 371.0], [0.0, 0.0, 1.0]])
 D_TRUE = np.array([-0.28, 0.09, 0.0008, -0.0005, -0.012])
@@ -250,26 +251,11 @@ def synthetic_rig(noise_px: float, seed: int = 0):
     detections with pixel noise."""
     cameras = load_ground_config(read_params_file(default_config_path())).cameras
     board = Board('chessboard', 7, 10, 0.1)
-    objects = board.object_points().astype(np.float64)
     rng = np.random.default_rng(seed)
-    detections = {c.name: {} for c in cameras}
-    for view in ['ground', *map(str, range(30))]:
-        R = BOARD_TO_WORLD.copy()                          # board -> world
-        t = np.zeros(3)
-        if view != 'ground':
-            rvec = rng.normal(size=3)
-            rvec *= math.radians(rng.uniform(0, 40)) / np.linalg.norm(rvec)
-            R = cv2.Rodrigues(rvec)[0] @ BOARD_TO_WORLD
-            t = np.array([*rng.uniform(-1, 1, 2), rng.uniform(0.3, 1.8)]) - \
-                R @ objects.mean(axis=0)
-        world = objects @ R.T + t
-        for cam in cameras:
-            px = cam.project(world)
-            facing = (R @ [0.0, 0.0, -1.0]) @ (cam.center - world.mean(axis=0)) > 0
-            if facing and (px > 0).all() and (px < (cam.width, cam.height)).all():
-                noisy = px + rng.normal(0.0, noise_px, px.shape)
-                detections[cam.name][view] = Detection(np.arange(len(px), dtype=np.int32),
-                                                       noisy.astype(np.float32))
+    waved = through_the_volume(board, 30, rng, half_width=1.0, heights=(0.3, 1.8),
+                               max_tilt_deg=40.0)
+    poses = {'ground': on_the_ground(), **{str(k): T for k, T in enumerate(waved)}}
+    detections = seen_points(cameras, board, poses, noise_px, rng)
     intrinsics = {c.name: Intrinsics(c.K, c.D, 'plumb_bob', (c.width, c.height), math.nan,
                                      {}, {}, math.nan) for c in cameras}
     return cameras, board, detections, intrinsics

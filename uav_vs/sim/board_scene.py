@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from uav_vs.sim.camera_effects import GaussianNoise
-from uav_vs.vision.calibration import Board
+from uav_vs.vision.calibration import Board, Detection
 from uav_vs.vision.camera import Camera
 from uav_vs.vision.rig_calibration import BOARD_TO_WORLD
 
@@ -176,3 +176,24 @@ def on_the_ground() -> np.ndarray:
     """The board flat on the ground, its first point at the world's origin and its first
     row along x: the view that fixes the world frame (uav_vs.vision.rig_calibration)."""
     return pose(BOARD_TO_WORLD, np.zeros(3))
+
+
+def seen_points(cameras: Sequence[Camera], board: Board, poses: dict[str, np.ndarray],
+                noise_px: float, rng: np.random.Generator) -> dict[str, dict[str, Detection]]:
+    """The board's points where each camera projects them at each named pose (4x4 board ->
+    world), when the camera faces its printed side and sees every point, with Gaussian
+    pixel noise: what a perfect detector would give, for checks that need no image.
+    {camera name: {pose name: Detection}}."""
+    objects = board.object_points().astype(np.float64)
+    out: dict[str, dict[str, Detection]] = {c.name: {} for c in cameras}
+    for name, T in poses.items():
+        world = objects @ T[:3, :3].T + T[:3, 3]
+        printed_side = T[:3, :3] @ [0.0, 0.0, -1.0]
+        for cam in cameras:
+            px = cam.project(world)
+            facing = printed_side @ (cam.center - world.mean(axis=0)) > 0
+            if facing and (px > 0).all() and (px < (cam.width, cam.height)).all():
+                noisy = px + rng.normal(0.0, noise_px, px.shape)
+                out[cam.name][name] = Detection(np.arange(len(px), dtype=np.int32),
+                                                noisy.astype(np.float32))
+    return out
