@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
+from uav_vs.control.controllers import wrap_angle
+
 P, V, YAW, RATE = slice(0, 3), slice(3, 6), 6, 7
 N = 8
 # each quantity and its rate: x, y, z, yaw and vx, vy, vz, yaw rate
@@ -81,10 +83,6 @@ class Estimate:
     @property
     def yaw(self) -> float:
         return float(self.x[YAW])
-
-
-def wrap(angle: float) -> float:
-    return (angle + math.pi) % (2 * math.pi) - math.pi
 
 
 def rot_z(yaw: float) -> np.ndarray:
@@ -189,7 +187,7 @@ class PoseFilter:
         Q[_LEVEL, _RATE_OF] = Q[_RATE_OF, _LEVEL] = self._q * dt ** 3 / 2
         Q[_RATE_OF, _RATE_OF] = self._q * dt ** 2
         x = F @ x
-        x[YAW] = wrap(x[YAW])
+        x[YAW] = wrap_angle(x[YAW])
         return x, F @ P_ @ F.T + Q
 
     def _update(self, state: tuple[np.ndarray, np.ndarray], t0: float, m: Measurement
@@ -202,14 +200,14 @@ class PoseFilter:
         """The Kalman update by `m`, or None when its innovation fails the gate."""
         h, H = self._observe(x, m.kind)
         y = m.z - h
-        y[3] = wrap(y[3])
+        y[3] = wrap_angle(y[3])
         PHt = P_ @ H.T
         S_inv = np.linalg.inv(H @ PHt + m.R)
         if y @ S_inv @ y > self._gates[len(y)]:
             return None
         K = PHt @ S_inv
         x = x + K @ y
-        x[YAW] = wrap(x[YAW])
+        x[YAW] = wrap_angle(x[YAW])
         I_KH = np.eye(N) - K @ H
         P_ = I_KH @ P_ @ I_KH.T + K @ m.R @ K.T      # Joseph form: stays symmetric, positive
         return x, P_
