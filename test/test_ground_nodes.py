@@ -214,14 +214,24 @@ def test_malformed_images_are_counted_skipped_and_the_node_goes_on(ros_node, pro
     ros_node.create_subscription(PolygonStamped, '/cam1/landmarks', out.append, 10)
     pub = ros_node.create_publisher(Image, '/cam1/image_raw', 10)
     assert wait_for(lambda: pub.get_subscription_count() > 0, 30)
-    header = Header(stamp=ns_to_stamp(1_000_000_000), frame_id='cam1_optical')
-    wrong_encoding = Image(header=header, height=480, width=640, encoding='32FC1', step=2560)
+    frames = iter(range(1, 1000))
+    header = lambda: Header(stamp=ns_to_stamp(next(frames) * 10**9),  # noqa: E731
+                            frame_id='cam1_optical')
+    good = lambda: bgr_to_image(np.full((480, 640, 3), 90, np.uint8), header())  # noqa: E731
+    # What goes out before the node's subscription matches this publisher never arrives:
+    # good images go out until one is answered, then the malformed ones.
+    deadline = time.monotonic() + 30
+    while not out and time.monotonic() < deadline:
+        pub.publish(good())
+        wait_for(lambda: bool(out), 0.5)
+    assert out
+    answered = len(out)
+    wrong_encoding = Image(header=header(), height=480, width=640, encoding='32FC1', step=2560)
     wrong_encoding.data = bytes(480 * 2560)
     pub.publish(wrong_encoding)
-    pub.publish(bgr_to_image(np.zeros((240, 320, 3), np.uint8), header))    # wrong size
-    good = bgr_to_image(np.full((480, 640, 3), 90, np.uint8), header)
-    pub.publish(good)
-    assert wait_for(lambda: len(out) == 1, 10)
+    pub.publish(bgr_to_image(np.zeros((240, 320, 3), np.uint8), header()))    # wrong size
+    pub.publish(good())
+    assert wait_for(lambda: len(out) == answered + 1, 10)
     assert wait_for(lambda: _last_diagnostics(diags, '/cam1/camshift_node').get('malformed') == '2',
                     10), diags
     assert proc.poll() is None
