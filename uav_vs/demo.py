@@ -44,8 +44,9 @@ from uav_vs.flight.recorder import MissionError
 from uav_vs.flight.replay import replay_flight
 from uav_vs.flight.report import FlightLog, FlightReport
 from uav_vs.flight.scenario import GPS_DENIED_PARAMS, SCENARIOS, Configs, SitlLink, fly
-from uav_vs.sim.sitl_process import (HOW_TO_GET, ArduCopterSitl, delete_namespace,
-                                     enter_loopback_namespace, find_binary)
+from uav_vs.sim import netns
+from uav_vs.sim.sitl_process import (HOW_TO_GET, ArduCopterSitl, enter_loopback_namespace,
+                                     find_binary)
 from uav_vs.vision.ground_config import default_config_path
 
 AUTOPILOTS = ('ardupilot', 'px4', 'ardupilot-sitl')
@@ -110,7 +111,7 @@ def sitl_closed_loop(scenario_name: str, out: Path, sensors: str, attach: str | 
             return closed_loop(scenario_name, out, 'ardupilot', sensors,
                                SitlLink(f'tcp:127.0.0.1:{relay}', f'tcp:127.0.0.1:{serial1}'))
     finally:
-        delete_namespace(namespace)
+        netns.delete(namespace)
 
 
 def next_serial_port(connection: str) -> str:

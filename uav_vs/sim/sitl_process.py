@@ -17,6 +17,8 @@ import subprocess
 import time
 from pathlib import Path
 
+from uav_vs.sim import netns
+
 SITL_ENV = 'UAV_VS_ARDUPILOT_SITL'
 BESIDE_CHECKOUT = (Path(__file__).resolve().parents[3] / 'shared' / 'sitl' / 'ardupilot'
                    / 'arducopter')
@@ -45,18 +47,11 @@ def enter_loopback_namespace(name: str) -> None:
     if os.geteuid() != 0:
         raise PermissionError('a loopback-only network namespace for SITL needs root; '
                               'start SITL yourself and give its connection instead')
-    subprocess.run(['ip', 'netns', 'add', name], check=True, capture_output=True)
-    subprocess.run(['ip', 'netns', 'exec', name, 'ip', 'link', 'set', 'lo', 'up'], check=True,
-                   capture_output=True)
+    netns.add(name)
     libc = ctypes.CDLL(None, use_errno=True)
     with open(f'/var/run/netns/{name}') as ns:
         if libc.setns(ns.fileno(), _CLONE_NEWNET) != 0:
             raise OSError(ctypes.get_errno(), f'setns into {name}')
-
-
-def delete_namespace(name: str) -> None:
-    """Remove the namespace's name (it ends when the last process in it exits)."""
-    subprocess.run(['ip', 'netns', 'del', name], capture_output=True)
 
 
 class ArduCopterSitl:

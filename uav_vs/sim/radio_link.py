@@ -1,0 +1,272 @@
+"""A radio link between two hosts, made in user space: delay, jitter, loss and cuts.
+
+The ground station's computer and the vehicle's are two network namespaces. A kernel
+with netem would impair a veth pair between them (`tc qdisc add ... netem delay 20ms
+10ms loss 2%`); without it, each namespace gets a TUN device and this forwarder carries
+every IP packet from one to the other, holding it for its delay or dropping it:
+
+    ground ns  radio0 10.77.0.1  <->  forwarder (root ns)  <->  radio0 10.77.0.2  air ns
+
+Each direction is a `Channel`: a packet is lost with probability `loss`, or held
+`delay` +- `jitter` (uniform, as netem's `delay D J`) and never overtakes the packet
+before it (a radio's MAC delivers in order). While the link is cut every packet is
+dropped. The forwarder records what it really applied, per packet, for the tests.
+Both TUN devices are named `radio0`, so one Fast DDS profile (config/fastdds_radio.xml)
+serves both hosts.
+
+    python -m uav_vs.sim.radio_link --ground G --air A [--delay 0.02 --jitter 0.01
+        --loss 0.02] [--stats FILE]
+
+runs it between two existing namespaces until SIGINT or SIGTERM (then writes FILE);
+SIGUSR1 cuts the link, SIGUSR2 restores it. `TwoHosts` makes the namespaces, starts
+the forwarder and removes both again.
+"""
+import argparse
+import fcntl
+import heapq
+import itertools
+import json
+import os
+import random
+import select
+import signal
+import struct
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from uav_vs.sim import netns
+
+TUNSETIFF = 0x400454CA
+IFF_TUN, IFF_NO_PI = 0x0001, 0x1000
+MTU = 1500
+SUBNET = '10.77.0'
+INTERFACE = 'radio0'
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """One direction's impairment; the same both ways."""
+
+    delay: float = 0.020         # s, mean one-way delay
+    jitter: float = 0.010        # s, half-width of the uniform spread around it
+    loss: float = 0.02           # probability that a packet is lost
+
+    def __post_init__(self) -> None:
+        if not (self.delay >= 0 and 0 <= self.jitter <= self.delay and 0 <= self.loss < 1):
+            raise ValueError(f'expected 0 <= jitter <= delay and 0 <= loss < 1, got {self}')
+
+
+@dataclass
+class ChannelStats:
+    packets: int = 0             # packets that entered the channel
+    bytes: int = 0
+    lost: int = 0                # dropped at random
+    cut: int = 0                 # dropped while the link was cut
+    delays: list[float] = field(default_factory=list)  # s, each admitted packet's delay
+    held: list[float] = field(default_factory=list)    # s, each delivered packet's stay
+
+
+class Channel:
+    """One direction of the link: which packets arrive, and when."""
+
+    def __init__(self, config: LinkConfig, rng: random.Random) -> None:
+        self.config, self.rng = config, rng
+        self.stats = ChannelStats()
+        self._last_due = -float('inf')
+
+    def admit(self, now: float, size: int, cut: bool) -> float | None:
+        """The time a packet entering at `now` leaves the link; None if it is lost."""
+        self.stats.packets += 1
+        self.stats.bytes += size
+        if cut:
+            self.stats.cut += 1
+            return None
+        if self.rng.random() < self.config.loss:
+            self.stats.lost += 1
+            return None
+        c = self.config
+        due = max(now + c.delay + self.rng.uniform(-c.jitter, c.jitter), self._last_due)
+        self._last_due = due
+        self.stats.delays.append(due - now)
+        return due
+
+
+def open_tun(name: str) -> int:
+    """A TUN device `name` (IP packets, no header) in this process's namespace."""
+    fd = os.open('/dev/net/tun', os.O_RDWR | os.O_NONBLOCK)
+    fcntl.ioctl(fd, TUNSETIFF, struct.pack('16sH', name.encode(), IFF_TUN | IFF_NO_PI))
+    return fd
+
+
+class Forwarder:
+    """Carries packets between two TUN devices through a Channel each way."""
+
+    def __init__(self, fds: tuple[int, int], config: LinkConfig, seed: int = 0) -> None:
+        rng = random.Random(seed)
+        self.fds = fds
+        self.channels = {fds[0]: Channel(config, random.Random(rng.random())),
+                         fds[1]: Channel(config, random.Random(rng.random()))}
+        self.cut = False
+        self.running = True
+        self._queue: list[tuple[float, int, int, bytes, float, Channel]] = []
+        self._order = itertools.count()
+
+    def run(self) -> None:
+        while self.running:
+            timeout = 0.1
+            if self._queue:
+                timeout = max(0.0, self._queue[0][0] - time.monotonic())
+            ready, _, _ = select.select(self.fds, [], [], timeout)
+            for fd in ready:
+                self._read(fd)
+            self._deliver()
+
+    def _read(self, fd: int) -> None:
+        out = self.fds[1] if fd == self.fds[0] else self.fds[0]
+        channel = self.channels[fd]
+        while True:
+            try:
+                packet = os.read(fd, MTU + 64)
+            except BlockingIOError:
+                return
+            now = time.monotonic()
+            due = channel.admit(now, len(packet), self.cut)
+            if due is not None:
+                heapq.heappush(self._queue, (due, next(self._order), out, packet, now, channel))
+
+    def _deliver(self) -> None:
+        while self._queue and self._queue[0][0] <= time.monotonic():
+            _, _, out, packet, entered, channel = heapq.heappop(self._queue)
+            try:
+                os.write(out, packet)
+            except OSError:
+                continue                 # the device went down: the packet is gone
+            channel.stats.held.append(time.monotonic() - entered)
+
+
+def ip(*args: str) -> None:
+    subprocess.run(['ip', *args], check=True, capture_output=True, text=True)
+
+
+def address(host: int) -> str:
+    """Address of host 1 (ground) or 2 (air) on the link."""
+    return f'{SUBNET}.{host}'
+
+
+def serve(ground: str, air: str, config: LinkConfig, seed: int, stats: Path | None) -> None:
+    """Run the link between namespaces `ground` and `air` until SIGINT or SIGTERM."""
+    names = (f'uvs{os.getpid()}g', f'uvs{os.getpid()}a')
+    fds = (open_tun(names[0]), open_tun(names[1]))
+    for host, (ns, name) in enumerate(zip((ground, air), names), start=1):
+        ip('link', 'set', 'dev', name, 'netns', ns)
+        ip('-n', ns, 'link', 'set', 'dev', name, 'name', INTERFACE)
+        subprocess.run([*netns.exec_prefix(ns), 'sysctl', '-q', '-w',
+                        f'net.ipv6.conf.{INTERFACE}.disable_ipv6=1'], check=True)
+        ip('-n', ns, 'link', 'set', 'dev', INTERFACE, 'mtu', str(MTU), 'up')
+        ip('-n', ns, 'addr', 'add', f'{address(host)}/24', 'dev', INTERFACE)
+    forwarder = Forwarder(fds, config, seed)
+
+    def stop(*_) -> None:
+        forwarder.running = False
+
+    def cut(on: bool) -> None:
+        forwarder.cut = on
+
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGUSR1, lambda *_: cut(True))
+    signal.signal(signal.SIGUSR2, lambda *_: cut(False))
+    print(f'link up: {ground} {address(1)} <-> {air} {address(2)}, {config}', flush=True)
+    forwarder.run()
+    if stats is not None:
+        stats.write_text(json.dumps({
+            'config': asdict(config),
+            'ground_to_air': asdict(forwarder.channels[fds[0]].stats),
+            'air_to_ground': asdict(forwarder.channels[fds[1]].stats)}))
+
+
+class TwoHosts:
+    """Two network namespaces joined by the radio link, removed again on exit.
+
+    `with TwoHosts('t1', LinkConfig()) as hosts: hosts.run('ground', [...])`
+    """
+
+    def __init__(self, tag: str, config: LinkConfig, seed: int = 0,
+                 stats: Path | None = None) -> None:
+        self.names = {'ground': f'uvs-{tag}-ground', 'air': f'uvs-{tag}-air'}
+        self.config, self.seed, self.stats_path = config, seed, stats
+        self.forwarder: subprocess.Popen | None = None
+
+    def __enter__(self) -> 'TwoHosts':
+        try:
+            for ns in self.names.values():
+                netns.add(ns)
+            argv = [sys.executable, '-m', 'uav_vs.sim.radio_link',
+                    '--ground', self.names['ground'], '--air', self.names['air'],
+                    '--delay', str(self.config.delay), '--jitter', str(self.config.jitter),
+                    '--loss', str(self.config.loss), '--seed', str(self.seed)]
+            if self.stats_path is not None:
+                argv += ['--stats', str(self.stats_path)]
+            self.forwarder = subprocess.Popen(argv, stdin=subprocess.DEVNULL,
+                                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                              text=True)
+            line = self.forwarder.stdout.readline()
+            if not line.startswith('link up'):
+                raise RuntimeError(f'the radio link did not start: {line}'
+                                   f'{self.forwarder.stdout.read()}')
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def __exit__(self, *_) -> None:
+        if self.forwarder is not None and self.forwarder.poll() is None:
+            self.forwarder.send_signal(signal.SIGINT)
+            try:
+                self.forwarder.wait(10)
+            except subprocess.TimeoutExpired:
+                self.forwarder.kill()
+                self.forwarder.wait()
+        for ns in self.names.values():
+            netns.delete(ns)
+
+    def address(self, host: str) -> str:
+        return address(1 if host == 'ground' else 2)
+
+    def exec(self, host: str) -> list[str]:
+        """argv prefix that runs a command on `host` ('ground' or 'air')."""
+        return netns.exec_prefix(self.names[host])
+
+    def cut(self, on: bool = True) -> None:
+        """Cut the link (every packet dropped) or, with on=False, restore it."""
+        self.forwarder.send_signal(signal.SIGUSR1 if on else signal.SIGUSR2)
+
+    def stats(self) -> dict:
+        """What the forwarder applied (after exit, with `stats` given)."""
+        return json.loads(self.stats_path.read_text())
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--ground', required=True, help='network namespace of the ground host')
+    parser.add_argument('--air', required=True, help="network namespace of the vehicle's host")
+    parser.add_argument('--delay', type=float, default=LinkConfig.delay, help='one-way delay, s')
+    parser.add_argument('--jitter', type=float, default=LinkConfig.jitter,
+                        help='uniform jitter around the delay, s')
+    parser.add_argument('--loss', type=float, default=LinkConfig.loss,
+                        help='probability that a packet is lost')
+    parser.add_argument('--seed', type=int, default=0, help='seed of the delays and losses')
+    parser.add_argument('--stats', type=Path, help='write what was applied here on exit')
+    args = parser.parse_args(argv)
+    try:
+        config = LinkConfig(args.delay, args.jitter, args.loss)
+    except ValueError as err:
+        parser.error(str(err))
+    serve(args.ground, args.air, config, args.seed, args.stats)
+
+
+if __name__ == '__main__':
+    main()
