@@ -13,10 +13,12 @@ The flights are in this module so that they run one after the other (`--dist loa
 import os
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
 
+from conftest import GRAPH_RERUNS
 from sitl import REPO, sitl_dir
 from uav_vs.flight.report import FlightLog, FlightReport
 
@@ -25,17 +27,25 @@ SCENARIO = 'land_on_pad'     # hold at (0, 0, 1.5) m, land on the pad at (0.8, -
 
 def fly_sitl(scenario: str, out) -> tuple[FlightLog, str]:
     """`python -m uav_vs.demo --autopilot ardupilot-sitl --scenario <scenario>`: its log
-    and output."""
+    and output. A mission that timed out waiting for a step is flown once more, as a graph
+    test is rerun (conftest.GRAPH_RERUNS), with a warning in the summary: on a loaded
+    machine the vision poses come late and few, and the SITL's loop may not settle in
+    time."""
     binary = sitl_dir() / 'ardupilot' / 'arducopter'
     if os.geteuid() != 0:
         pytest.skip('SITL runs in a network namespace of its own, which needs root')
-    run = subprocess.run([sys.executable, '-m', 'uav_vs.demo', '--autopilot', 'ardupilot-sitl',
-                          '--scenario', scenario, '--out', str(out)],
-                         env={**os.environ, 'UAV_VS_ARDUPILOT_SITL': str(binary)},
-                         capture_output=True, text=True, timeout=300, cwd=REPO)
-    print(run.stdout)
-    assert (out / 'flight.npz').exists(), f'{run.stdout[-3000:]}\n{run.stderr[-3000:]}'
-    return FlightLog.load(out / 'flight.npz'), run.stdout
+    for attempt in range(1 + GRAPH_RERUNS):
+        folder = out / f'attempt{attempt}' if attempt else out
+        run = subprocess.run([sys.executable, '-m', 'uav_vs.demo', '--autopilot',
+                              'ardupilot-sitl', '--scenario', scenario, '--out', str(folder)],
+                             env={**os.environ, 'UAV_VS_ARDUPILOT_SITL': str(binary)},
+                             capture_output=True, text=True, timeout=300, cwd=REPO)
+        print(run.stdout)
+        assert (folder / 'flight.npz').exists(), f'{run.stdout[-3000:]}\n{run.stderr[-3000:]}'
+        log = FlightLog.load(folder / 'flight.npz')
+        if not log.failure.startswith('timed out') or attempt == GRAPH_RERUNS:
+            return log, run.stdout
+        warnings.warn(f'SITL {scenario} flight flown again: {log.failure} ({folder})')
 
 
 @pytest.fixture(scope='module')
