@@ -55,7 +55,7 @@ $(UBUNTU_STAMP): $(SOURCES) requirements-ubuntu2404.txt
 # --dist loadscope: a module's tests run in one worker, so a module-scoped fixture (a SITL
 # flight, the fuzz harness's nodes) starts once, never twice on the same ports.
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 --dist loadscope test
+	$(BIN)/python -m pytest -n 2 --dist loadscope --durations=25 test
 
 # The same suite with one core kept busy (a busy loop at nice 10), for anyone changing a
 # test that depends on timing: it must pass here too, and count no rerun.
@@ -76,7 +76,7 @@ bench: $(STAMP)
 	$(BIN)/python -m bench
 
 demo: $(STAMP)
-	$(BIN)/python -m uav_vs.demo $(if $(BAG),--bag $(BAG)) $(if $(AUTOPILOT),--autopilot $(AUTOPILOT)) $(if $(SITL),--sitl $(SITL)) $(if $(SENSORS),--sensors $(SENSORS)) $(if $(SCENARIO),--scenario $(SCENARIO))
+	$(BIN)/python -m uav_vs.demo $(if $(BAG),--bag $(BAG)) $(if $(AUTOPILOT),--autopilot $(AUTOPILOT)) $(if $(SITL),--sitl $(SITL)) $(if $(SENSORS),--sensors $(SENSORS)) $(if $(SCENARIO),--scenario $(SCENARIO)) $(if $(HOSTS),--hosts $(HOSTS))
 
 clean:
 	rm -rf $(VENV) $(UBUNTU_VENV) build install log *.egg-info bench-results.jsonl demo-output

@@ -17,6 +17,7 @@ import numpy as np
 
 from uav_vs.autopilot.link import mavlink, open_connection
 from uav_vs.sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
+from uav_vs.sim.sitl_truth import SitlTruth
 
 VEL_YAW_RATE, VEL_ONLY = 0x05C7, 0x0DC7
 
@@ -228,6 +229,29 @@ def test_the_reported_position_drifts_from_the_truth_and_gps_stays_true():
         gps = [m for m in gcs.collect(0.3) if m.get_type() == 'GPS_RAW_INT'][-1]
         assert abs(gps.alt / 1e3 - (VehicleConfig.home[2] - p[2])) < 0.002
         gcs.close()
+
+
+def test_the_truth_port_serves_sim_state_as_sitl_does_and_ignores_a_cut_link():
+    with vehicle(truth_connection='udpin:127.0.0.1:0', gust_sigma=0.2, drift_rate=0.05,
+                 seed=2) as sim:
+        truth = SitlTruth(f'udpout:127.0.0.1:{sim.truth_address[1]}').start()
+        try:
+            truth.wait(10.0)                     # asked SIM_STATE at 50 Hz, as of SITL
+            gcs = Gcs(sim.address[1])
+            airborne(sim, gcs, height=1.5)
+            gcs.target((0.3, -0.2, 0.0), yaw_rate=0.2)
+            time.sleep(1.0)
+            sim.cut_link()                       # the radio, not the world's port
+            time.sleep(0.5)
+            true, seen = sim.truth(), truth.state()
+            # ENU seen against NED simulated, both at their own instant, moving < 1 m/s
+            assert np.allclose(seen.position, [true.position[1], true.position[0],
+                                               -true.position[2]], atol=0.05), seen.position
+            assert abs(math.remainder(seen.yaw - (math.pi / 2 - true.yaw), 2 * math.pi)) < 0.05
+            assert seen.armed and seen.mode == 'GUIDED' and seen.flying
+            gcs.close()
+        finally:
+            truth.close()
 
 
 def test_bad_targets_hold_and_yaw_follows_travel_when_ignored():

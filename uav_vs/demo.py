@@ -28,6 +28,11 @@ the summary adds what the EKF reported over the flight.
 ground after the hold, with target_tracker_node and target_follower_node; the summary
 adds how close the vehicle stayed to it.
 
+`make demo HOSTS=2` (`--hosts 2`, root) runs the ground station and the vehicle on two
+hosts, network namespaces joined by a radio link of 20 +- 10 ms and 2 % loss
+(uav_vs.sim.radio_link), DDS across it by static peers; the summary adds what the link
+carried and the commands as the vehicle received them.
+
 `make demo BAG=<bag>` (`--bag`) replays a bag instead (the flight bag a closed-loop run
 records into the output folder, or bags/ground_trinocular, bags/onboard) through the
 open-loop part of the graph (uav_vs.flight.replay) and reports the same way.
@@ -36,15 +41,20 @@ import argparse
 import os
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 from uav_vs.bag.reader import BagError
 from uav_vs.flight.plots import plot_flight
 from uav_vs.flight.recorder import MissionError
-from uav_vs.flight.replay import replay_flight
-from uav_vs.flight.report import FlightLog, FlightReport
-from uav_vs.flight.scenario import GPS_DENIED_PARAMS, SCENARIOS, Configs, SitlLink, fly
-from uav_vs.sim import netns
+from uav_vs.flight.replay import commands_from_bag, replay_flight
+from uav_vs.flight.report import FlightLog, FlightReport, command_latencies
+from uav_vs.flight.scenario import (GPS_DENIED_PARAMS, SCENARIOS, Configs, SitlLink, fly,
+                                    vehicle_bag)
+from uav_vs.sim import netns, radio_link
+from uav_vs.sim.radio_link import LinkConfig, TwoHosts
 from uav_vs.sim.sitl_process import (HOW_TO_GET, ArduCopterSitl, enter_loopback_namespace,
                                      find_binary)
 from uav_vs.vision.ground_config import default_config_path
@@ -66,11 +76,15 @@ def replay(bag: Path, out: Path, rate: float) -> int:
 
 
 def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
-                sitl: SitlLink | None = None) -> int:
+                sitl: SitlLink | None = None, hosts: TwoHosts | None = None) -> int:
     """Fly a scenario (recording its bag into out/bag) with the `sensors` profile; print
     and save the summary and plots."""
     scenario = SCENARIOS[scenario_name]
     vehicle = f'ArduCopter SITL on {sitl.relay}' if sitl else f'simulated {autopilot}'
+    if hosts is not None:
+        print(f"two hosts: ground {hosts.names['ground']} ({hosts.address('ground')}), vehicle "
+              f"{hosts.names['air']} ({hosts.address('air')}), over a radio link of "
+              f'{hosts.config}', flush=True)
     profile = default_config_path(f'sensors_{sensors}.yaml')
     nodes = ['3 camshift_node', 'trinocular_pose_node',
              *(['homography_pose_node'] if scenario.setpoints or scenario.landing else []),
@@ -80,7 +94,37 @@ def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
           f"sim_world ({vehicle}) + {' + '.join(nodes)}, recorded to {out}/bag "
           f'(logs in {out}/logs/)', flush=True)
     return report(fly(scenario, out, Configs(sensors=profile), autopilot=autopilot, sitl=sitl,
-                      startup_timeout=SITL_STARTUP_S if sitl else 90.0), out)
+                      startup_timeout=SITL_STARTUP_S if sitl else 90.0, hosts=hosts), out)
+
+
+def two_hosts_closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str) -> int:
+    """The closed loop on two hosts joined by the default radio link (radio_link): this
+    process enters the ground host."""
+    hosts = TwoHosts(str(os.getpid()), LinkConfig(), stats=out / 'link.json')
+    try:
+        hosts.__enter__()
+    except (PermissionError, OSError, subprocess.CalledProcessError, RuntimeError) as err:
+        print(f'cannot make two hosts (network namespaces need root): {err}', file=sys.stderr)
+        return 2
+    try:
+        netns.enter(hosts.names['ground'])
+        os.environ.update(hosts.ros_env('ground'))
+        code = closed_loop(scenario_name, out, autopilot, sensors, hosts=hosts)
+    finally:
+        hosts.__exit__()
+    summary = radio_link.summary(hosts.stats())
+    latency = []
+    if vehicle_bag(out).exists() and (out / 'flight.npz').exists():
+        log = FlightLog.load(out / 'flight.npz')
+        latency = command_latencies(replace(log, commands=commands_from_bag(vehicle_bag(out))))
+    if len(latency):
+        summary += (f'\ncmd_vel on the vehicle: {len(latency)} commands from vision poses; '
+                    f'image stamp to command: median {np.median(latency):.1f} ms, '
+                    f'p95 {np.percentile(latency, 95):.1f} ms')
+    print(summary)
+    with open(out / 'summary.txt', 'a') as f:
+        f.write(summary + '\n')
+    return code
 
 
 def sitl_closed_loop(scenario_name: str, out: Path, sensors: str, attach: str | None,
@@ -153,6 +197,10 @@ def main(argv: list[str] | None = None) -> int:
                         'running, for the relay (e.g. tcp:127.0.0.1:5760); default: start one')
     parser.add_argument('--sitl-truth', help="that SITL's port for the SIM_STATE truth "
                         '(default: --sitl PORT + 2)')
+    parser.add_argument('--hosts', type=int, default=1, choices=(1, 2),
+                        help='2: the ground station and the vehicle on two hosts (network '
+                        'namespaces, needs root) joined by a radio link of 20 +- 10 ms and '
+                        '2 %% loss (default %(default)s)')
     parser.add_argument('--out', type=Path, help='output folder (default demo-output, '
                         'demo-output/replay with --bag)')
     args = parser.parse_args(argv)
@@ -168,7 +216,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f'--scenario {args.scenario} needs --autopilot ardupilot-sitl (an EKF '
                      'that navigates on the vision pose)')
     if args.autopilot == 'ardupilot-sitl':
+        if args.hosts == 2:
+            parser.error('--hosts 2 flies the simulated vehicle: --autopilot ardupilot or px4')
         return sitl_closed_loop(args.scenario, out, args.sensors, args.sitl, args.sitl_truth)
+    if args.hosts == 2:
+        return two_hosts_closed_loop(args.scenario, out, args.autopilot, args.sensors)
     return closed_loop(args.scenario, out, args.autopilot, args.sensors)
 
 

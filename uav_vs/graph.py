@@ -28,13 +28,15 @@ def executable(name: str) -> str:
 
 
 def start(name: str, ros_args: list[str], log_dir: Path, label: str | None = None,
-          env: dict[str, str] | None = None, args: list[str] = ()) -> subprocess.Popen:
+          env: dict[str, str] | None = None, args: list[str] = (),
+          wrap: list[str] = ()) -> subprocess.Popen:
     """Start `name args --ros-args ros_args`, stdout and stderr to log_dir/<label>.log
-    (the process's `log_path`)."""
+    (the process's `log_path`); after the argv prefix `wrap` if given (e.g. `ip netns exec
+    NS`, which passes SIGINT on by exec'ing the node)."""
     log_dir.mkdir(parents=True, exist_ok=True)
     path = log_dir / f'{label or name}.log'
     log = open(path, 'wb')
-    argv = [executable(name), *args, *(['--ros-args', *ros_args] if ros_args else [])]
+    argv = [*wrap, executable(name), *args, *(['--ros-args', *ros_args] if ros_args else [])]
     proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log,
                             stderr=subprocess.STDOUT, env={**os.environ, **(env or {})})
     log.close()

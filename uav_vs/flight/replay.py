@@ -22,16 +22,16 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, TwistStamped
 from rclpy.serialization import deserialize_message
 from scipy.spatial.transform import Rotation
 
 from uav_vs import graph
-from uav_vs.bag.reader import BagMessage, read_messages
+from uav_vs.bag.reader import Bag, BagMessage, read_messages
 from uav_vs.flight.ground_replay import ground_graph
 from uav_vs.flight.onboard_replay import onboard_graph
 from uav_vs.flight.recorder import FlightRecorder, MissionError
-from uav_vs.flight.report import FlightLog
+from uav_vs.flight.report import CommandTrack, FlightLog
 from uav_vs.flight.scenario import Configs
 from uav_vs.ros.convert import msg_to_pose, stamp_to_ns
 from uav_vs.ros.replay import RawPublishers, message_class
@@ -141,3 +141,18 @@ def _wait(procs: dict, predicate, timeout: float, quiet: bool = False) -> None:
                 return
             raise MissionError(f'the graph did not come up within {timeout:.0f} s')
         time.sleep(0.05)
+
+
+def commands_from_bag(bag: Path, topic: str = '/cmd_vel') -> CommandTrack:
+    """The cmd_vel of a bag as a CommandTrack, each received when the bag took it."""
+    stamps, received, values = [], [], []
+    with Bag(bag) as b:
+        for m in b.messages([topic]):
+            msg = deserialize_message(m.raw, TwistStamped)
+            v, w = msg.twist.linear, msg.twist.angular
+            stamps.append(stamp_to_ns(msg.header.stamp))
+            received.append(m.t_ns)
+            values.append((v.x, v.y, v.z, w.z))
+    a = np.array(values, dtype=float).reshape(-1, 4)
+    return CommandTrack(np.array(stamps, np.int64), np.array(received, np.int64), a[:, :3],
+                        a[:, 3])

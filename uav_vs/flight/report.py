@@ -41,10 +41,11 @@ class _Track:
 
     @classmethod
     def from_rows(cls, rows: list[tuple[int, int, float, float, float, float]]):
-        """From (stamp_ns, received_ns, x, y, z, scalar) rows."""
+        """From (stamp_ns, received_ns, x, y, z, scalar) rows, in stamp order (two
+        publishers' rows may come interleaved)."""
         if not rows:
             return cls()
-        a = np.array(rows, dtype=object)
+        a = np.array(sorted(rows, key=lambda row: row[0]), dtype=object)
         return cls(a[:, 0].astype(np.int64), a[:, 1].astype(np.int64),
                    a[:, 2:5].astype(float), a[:, 5].astype(float))
 

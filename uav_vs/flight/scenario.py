@@ -38,10 +38,12 @@ from uav_vs import graph
 from uav_vs.flight.ground_replay import DEFAULT_LAYOUT, ground_graph
 from uav_vs.flight.recorder import FlightRecorder, MissionError
 from uav_vs.flight.report import FlightLog, SetpointEvent
+from uav_vs.sim.radio_link import TwoHosts
 from uav_vs.sim.sitl_process import HOME_LLA
 from uav_vs.vision.ground_config import default_config_path, read_params_file
 
 NORTH = math.pi / 2          # ENU heading of the vehicle at boot (MAVLink yaw 0 = north)
+TRUTH_PORT = 5762            # the vehicle's SIM_STATE port on two hosts (SITL's SERIAL1)
 
 
 @dataclass(frozen=True)
@@ -147,31 +149,46 @@ class SitlLink:
 
 def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
         startup_timeout: float = 90.0, record: bool = True,
-        autopilot: str = 'ardupilot', sitl: SitlLink | None = None) -> FlightLog:
+        autopilot: str = 'ardupilot', sitl: SitlLink | None = None,
+        hosts: TwoHosts | None = None) -> FlightLog:
     """Start the graph, fly `scenario`, stop the graph; node logs go to out_dir/logs and,
     with `record`, the flight's topics (recorded_topics) to the bag out_dir/bag. The
     vehicle is the simulated one, behaving as `autopilot` ('ardupilot' or 'px4') does,
     or with `sitl` that ArduPilot SITL (started, ready within `startup_timeout`).
 
+    With `hosts` the graph runs on two hosts joined by a radio link (uav_vs.sim.
+    radio_link): this process, the ground cameras and station, the controller and the
+    recorder on `ground`, which the calling thread must have entered (netns.enter, with
+    hosts.ros_env('ground') in os.environ); the vehicle, its onboard camera and nodes
+    and the relay on `air`. Only poses, commands and diagnostics cross the link.
+
     A step that fails ends the mission (the vehicle is told to land where it is) and
     is named in the log's `failure`.
     """
     bag = out_dir / 'bag' if record else None
-    if bag is not None and bag.exists():
-        shutil.rmtree(bag)
-    return _Mission(scenario, out_dir / 'logs', configs, bag, autopilot, sitl).run(
+    for old in (bag, vehicle_bag(out_dir)) if record else ():
+        if old.exists():
+            shutil.rmtree(old)
+    return _Mission(scenario, out_dir / 'logs', configs, bag, autopilot, sitl, hosts).run(
         startup_timeout)
 
 
-def recorded_topics(cameras: list[str]) -> list[str]:
+def recorded_topics(cameras: list[str], onboard_images: bool = True) -> list[str]:
     """What a flight's bag holds: every camera's JPEG images and calibration, the truth,
     both vision poses, the ground landmarks, the setpoints, the commands and the
-    autopilot's estimate; enough to replay the flight through the open-loop graph."""
+    autopilot's estimate; enough to replay the flight through the open-loop graph.
+    Without `onboard_images`, not the onboard camera's (a recorder on another host)."""
     per_camera = [f'{cam}/{topic}' for cam in [*cameras, 'onboard']
-                  for topic in ('image_raw/compressed', 'camera_info')]
+                  for topic in ('image_raw/compressed', 'camera_info')
+                  if onboard_images or cam != 'onboard' or topic == 'camera_info']
     return [*per_camera, *(f'{cam}/landmarks' for cam in cameras), 'truth/pose',
             'ground/pose', 'ground/landmarks', 'onboard/pose', 'setpoint', 'cmd_vel',
             'autopilot/odom', 'truth/target', 'onboard/target', 'target/pose']
+
+
+def vehicle_bag(out_dir: Path) -> Path:
+    """The bag of cmd_vel recorded on the vehicle's host, with two hosts."""
+    return out_dir / 'vehicle_bag'
 
 
 def free_port() -> int:
@@ -185,9 +202,10 @@ class _Mission:
     """One flight of a scenario: processes, mission steps, events."""
 
     def __init__(self, scenario: Scenario, log_dir: Path, configs: Configs,
-                 bag: Path | None, autopilot: str, sitl: SitlLink | None) -> None:
+                 bag: Path | None, autopilot: str, sitl: SitlLink | None,
+                 hosts: TwoHosts | None) -> None:
         self.scenario, self.log_dir, self.configs, self.bag = scenario, log_dir, configs, bag
-        self.autopilot, self.sitl = autopilot, sitl
+        self.autopilot, self.sitl, self.hosts = autopilot, sitl, hosts
         self.procs: dict[str, subprocess.Popen] = {}      # running
         self.retired: list[tuple[str, subprocess.Popen]] = []   # stopped on purpose
         self.controller_source = ''
@@ -214,9 +232,13 @@ class _Mission:
 
     # ---------------------------------------------------------------- graph
     def _start(self, label: str, name: str, ros_args: list[str], args: list[str] = (),
-               log_name: str | None = None) -> None:
+               log_name: str | None = None, on_vehicle: bool = False) -> None:
+        """Start a node here, or `on_vehicle` on the vehicle's host if there are two."""
+        wrap, env = (), None
+        if on_vehicle and self.hosts is not None:
+            wrap, env = self.hosts.exec('air'), self.hosts.ros_env('air')
         self.procs[label] = graph.start(name, ros_args, self.log_dir, log_name or label,
-                                        args=args)
+                                        env=env, args=args, wrap=wrap)
 
     def _start_graph(self, cameras: list[str], timeout: float) -> None:
         """The recorder, then everything but the onboard pose node; the relay once the
@@ -232,16 +254,34 @@ class _Mission:
                        '-p', f'vehicle.sitl_connection:={self.sitl.truth}']
             relay = self.sitl.relay
         if self.bag is not None:
-            self._start('bag_record', 'bag_record', [], args=['-o', str(self.bag),
-                                                               *recorded_topics(cameras)])
-        self._start('sim_world', 'sim_world', [
-            '--params-file', str(c.world_ground or c.ground), '--params-file', str(c.onboard),
-            '--params-file', str(c.world),
-            *(['--params-file', str(c.sensors)] if c.sensors else []), *vehicle,
-            *(['-p', 'ground_target.enabled:=true'] if self.scenario.follow else [])])
+            topics = recorded_topics(cameras, onboard_images=self.hosts is None)
+            self._start('bag_record', 'bag_record', [], args=['-o', str(self.bag), *topics])
+            if self.hosts is not None:     # the commands as the vehicle receives them
+                self._start('bag_record_vehicle', 'bag_record', [], args=[
+                    '-o', str(vehicle_bag(self.bag.parent)), 'cmd_vel'], on_vehicle=True)
+        world = ['--params-file', str(c.world_ground or c.ground), '--params-file', str(c.onboard),
+                 '--params-file', str(c.world),
+                 *(['--params-file', str(c.sensors)] if c.sensors else [])]
+        target = ['-p', 'ground_target.enabled:=true'] if self.scenario.follow else []
+        if self.hosts is None:
+            self._start('sim_world', 'sim_world', [*world, *vehicle, *target])
+        else:
+            # The vehicle and its camera fly; the ground cameras are rendered on the ground
+            # from the truth the vehicle serves on the world's wire (radio_link).
+            truth = f'{self.hosts.world_address("air")}:{TRUTH_PORT}'
+            self._start('sim_world', 'sim_world', [
+                *world, *vehicle, *target, '-p', 'ground.rate:=0.0',
+                '-p', f'vehicle.truth_connection:=tcpin:{truth}'], on_vehicle=True)
+            self._wait('sim_world', lambda: '/sim_world' in self.rec.reporting, timeout)
+            # Both publish truth/pose at the instants their cameras sample it.
+            self._start('sim_cameras', 'sim_world', [
+                *world, '-r', '__node:=sim_cameras', '-p', 'vehicle.model:=sitl',
+                '-p', f'vehicle.sitl_connection:=tcp:{truth}', '-p', 'onboard.rate:=0.0'])
         self.procs.update(ground_graph(c.ground, cameras, self.log_dir, layout=c.ground_layout))
         self._start_controller('ground')
         self._wait('sim_world', lambda: '/sim_world' in self.rec.reporting, timeout)
+        if self.hosts is not None:
+            self._wait('sim_cameras', lambda: '/sim_cameras' in self.rec.reporting, timeout)
         if self.scenario.gps_denied:
             if self.sitl is None:
                 raise MissionError(f'{self.scenario.name} needs an autopilot with an EKF: '
@@ -254,7 +294,8 @@ class _Mission:
         self._start('mavlink_relay_node', 'mavlink_relay_node', [
             '--params-file', str(c.relay), '-p', f'connection:={relay}',
             '-p', 'allow_arming:=true',
-            '-p', f'takeoff_height:={self.scenario.takeoff_height:.3f}', *relay_args])
+            '-p', f'takeoff_height:={self.scenario.takeoff_height:.3f}', *relay_args],
+            on_vehicle=True)
 
     def _start_controller(self, source: str) -> None:
         """(Re)start fuzzy_controller_node flying on `source`'s pose (ground or onboard)."""
@@ -357,7 +398,7 @@ class _Mission:
         self._start('homography_pose_node', 'homography_pose_node', [
             '--params-file', str(self.configs.onboard), '-p', 'init.mode:=pose',
             '-p', f'init.position:=[{x:.4f}, {y:.4f}, {z:.4f}]',
-            '-p', f'init.rpy:=[0.0, 0.0, {yaw:.5f}]'])
+            '-p', f'init.rpy:=[0.0, 0.0, {yaw:.5f}]'], on_vehicle=True)
         self._wait('the first onboard/pose', lambda: self._fresh('onboard'), 30.0)
 
     def _follow(self, follow: Follow) -> None:
@@ -366,10 +407,10 @@ class _Mission:
         c = self.configs
         self._start('target_tracker_node', 'target_tracker_node', [
             '--params-file', str(c.onboard), '-p', 'target.features:=orb',
-            '-p', 'target.max_features:=2000'])
+            '-p', 'target.max_features:=2000'], on_vehicle=True)
         self._start('target_follower_node', 'target_follower_node', [
             '--params-file', str(c.onboard), '-p', f'follow.height:={follow.height:.3f}',
-            '-p', f'follow.yaw:={self.scenario.hold.yaw:.5f}'])
+            '-p', f'follow.yaw:={self.scenario.hold.yaw:.5f}'], on_vehicle=True)
         self._wait('the first target/pose', lambda: self._fresh('target'), 30.0)
         self.rec.clear_setpoint()
         self._keep_following(follow.settle, follow.lost_after)

@@ -78,6 +78,9 @@ PARAMS = [
     Param('vehicle.sitl_connection', T.STRING, 'tcp:127.0.0.1:5762',
           "sitl: a SITL MAVLink port the relay does not use (SERIAL1 or SERIAL2), where the "
           'SIM_STATE truth is read: tcp:HOST:PORT or udpin:HOST:PORT'),
+    Param('vehicle.truth_connection', T.STRING, '',
+          'builtin: also serve the true state as SIM_STATE on this MAVLink endpoint, as SITL '
+          'does on SERIAL2 (another sim_world reads it with vehicle.model sitl); empty: no'),
     Param('vehicle.system_id', T.INTEGER, _V.system_id,
           'MAVLink system id of the vehicle (builtin or SITL)', 1, 255),
     Param('vehicle.autopilot', T.STRING, _V.autopilot,
@@ -327,9 +330,10 @@ class SimWorldNode(Node):
                 gust_sigma=p['wind.gust_sigma'] if p['wind.enabled'] else 0.0,
                 gust_time_constant=p['wind.time_constant'],
                 drift_rate=p['drift.rate'] if p['drift.enabled'] else 0.0,
-                seed=p['world.seed']))
+                seed=p['world.seed'], truth_connection=p['vehicle.truth_connection'] or None))
         except OSError as err:
-            raise ValueError(f"vehicle.connection: cannot serve {p['vehicle.connection']}: "
+            names = ('vehicle.connection', 'vehicle.truth_connection')
+            raise ValueError(f"{' or '.join(n for n in names if p[n])}: cannot serve "
                              f'{err.strerror or err}') from None
         host, port = vehicle.address
         return (SimulatedVehicle(vehicle.start()),

@@ -3,6 +3,11 @@
 It is the test peer of the relay (uav_vs.autopilot.session) and the embedded default
 vehicle; the real targets are ArduPilot/PX4 SITL and real autopilots.
 
+With `truth_connection` it also serves its true state as ArduPilot's SITL does on a port
+of its own: HEARTBEAT, and SIM_STATE and EXTENDED_SYS_STATE at the rates
+SET_MESSAGE_INTERVAL asks there (uav_vs.sim.sitl_truth reads it). That port is the
+world's, not the radio's: `cut_link` leaves it alone.
+
 Dynamics, in the autopilot's own local NED frame with home and the ground at z = 0
 (gravity-free: an armed, flying vehicle hovers where its velocity target is zero):
 
@@ -125,6 +130,7 @@ class VehicleConfig:
     offboard_loss_timeout: float = 1.0  # PX4: OFFBOARD left this long without a setpoint [s]
     home: tuple[float, float, float] = (-35.363261, 149.165230, 584.0)  # lat, lon [deg], AMSL [m]
     signing_key: bytes | None = None
+    truth_connection: str | None = None  # server side of the SIM_STATE truth port, as connection
     # PX4's ODOMETRY: variances of position (N, E, D) [m^2], orientation (roll, pitch,
     # yaw) [rad^2] and velocity (N, E, D) [m^2/s^2]
     odometry_variance: tuple = ((0.01, 0.02, 0.04), (1e-4, 2e-4, 4e-4), (0.001, 0.002, 0.003))
@@ -190,6 +196,11 @@ class _TcpServer(mavutil.mavtcpin):
         return data
 
 
+def _bound(conn) -> tuple[str, int]:
+    sock = conn.listen if isinstance(conn, _TcpServer) else conn.port
+    return sock.getsockname()[:2]
+
+
 def _server(device: str, system_id: int):
     """The vehicle's end of the link; signatures verified before any state changes."""
     if device.startswith('tcpin:'):
@@ -209,6 +220,10 @@ class MavlinkVehicle:
         self.config = config
         self._px4 = config.autopilot == PX4
         self._conn = _server(config.connection, config.system_id)
+        self._truth_conn = (None if config.truth_connection is None
+                            else _server(config.truth_connection, config.system_id))
+        self._truth_intervals = {mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0}
+        self._truth_next: dict[int, float] = {}
         if config.signing_key is not None:
             self._conn.setup_signing(config.signing_key, sign_outgoing=True)
         self._lock = threading.Lock()
@@ -249,8 +264,12 @@ class MavlinkVehicle:
     @property
     def address(self) -> tuple[str, int]:
         """The (host, port) actually served (useful with port 0)."""
-        sock = self._conn.listen if isinstance(self._conn, _TcpServer) else self._conn.port
-        return sock.getsockname()[:2]
+        return _bound(self._conn)
+
+    @property
+    def truth_address(self) -> tuple[str, int]:
+        """The (host, port) of the truth port."""
+        return _bound(self._truth_conn)
 
     def start(self) -> 'MavlinkVehicle':
         self._thread.start()
@@ -261,6 +280,8 @@ class MavlinkVehicle:
         if self._thread.is_alive():
             self._thread.join(timeout=2.0)
         self._conn.close()
+        if self._truth_conn is not None:
+            self._truth_conn.close()
 
     def __enter__(self) -> 'MavlinkVehicle':
         return self.start()
@@ -318,6 +339,8 @@ class MavlinkVehicle:
                         self._handle(msg, now)
                 if self._link_up:
                     self._send_due(now)
+                if self._truth_conn is not None:
+                    self._serve_truth(now)
             last = now
             self._stop.wait(max(0.0, period - (time.monotonic() - now)))
 
@@ -531,10 +554,49 @@ class MavlinkVehicle:
                 self._senders[msg_id](now)
                 self._next_send[msg_id] = max(self._next_send.get(msg_id, now) + interval, now)
 
+    def _serve_truth(self, now: float) -> None:
+        """The truth port: SET_MESSAGE_INTERVAL for SIM_STATE and EXTENDED_SYS_STATE
+        answered, what is due sent."""
+        conn = self._truth_conn
+        while (msg := conn.recv_msg()) is not None:
+            if (msg.get_type() == 'COMMAND_LONG' and msg.target_system in (0, self.config.system_id)
+                    and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL):
+                result = mavlink.MAV_RESULT_UNSUPPORTED
+                if int(msg.param1) in (mavlink.MAVLINK_MSG_ID_SIM_STATE,
+                                       mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE):
+                    result = mavlink.MAV_RESULT_ACCEPTED
+                    if msg.param2 > 0:
+                        self._truth_intervals[int(msg.param1)] = msg.param2 * 1e-6
+                    else:
+                        self._truth_intervals.pop(int(msg.param1), None)
+                conn.mav.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(),
+                                          msg.get_srcComponent())
+        senders = {mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._send_heartbeat,
+                   mavlink.MAVLINK_MSG_ID_SIM_STATE: self._send_sim_state,
+                   mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: self._send_extended_sys_state}
+        for msg_id, interval in self._truth_intervals.items():
+            if now >= self._truth_next.get(msg_id, 0.0):
+                senders[msg_id](now, conn)
+                self._truth_next[msg_id] = max(self._truth_next.get(msg_id, now) + interval, now)
+
+    def _send_sim_state(self, now: float, conn) -> None:
+        """SIM_STATE: the true position, velocity and attitude (level), as SITL's."""
+        lat, lon, alt = self._lat_lon_alt(self._p)
+        vn, ve, vd = self._v + self._gust
+        c, s = math.cos(self._yaw / 2), math.sin(self._yaw / 2)
+        conn.mav.sim_state_send(c, 0.0, 0.0, s, 0.0, 0.0, self._yaw, 0.0, 0.0, -9.81,
+                                0.0, 0.0, self._yaw_rate, lat, lon, alt, 0.0, 0.0, vn, ve, vd,
+                                int(round(lat * 1e7)), int(round(lon * 1e7)))
+
+    def _send_extended_sys_state(self, now: float, conn) -> None:
+        landed = mavlink.MAV_LANDED_STATE_IN_AIR if self._flying else \
+            mavlink.MAV_LANDED_STATE_ON_GROUND
+        conn.mav.extended_sys_state_send(mavlink.MAV_VTOL_STATE_UNDEFINED, landed)
+
     def _boot_ms(self, now: float) -> int:
         return int((now - self._t0) * 1e3)
 
-    def _send_heartbeat(self, now: float) -> None:
+    def _send_heartbeat(self, now: float, conn=None) -> None:
         if self._px4:
             base, autopilot = mavutil.px4_map[self._mode][0], mavlink.MAV_AUTOPILOT_PX4
         else:
@@ -545,8 +607,9 @@ class MavlinkVehicle:
         if self._armed:
             base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         state = mavlink.MAV_STATE_ACTIVE if self._armed else mavlink.MAV_STATE_STANDBY
-        self._conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, autopilot, base,
-                                      CUSTOM_MODES[self.config.autopilot][self._mode], state)
+        (conn or self._conn).mav.heartbeat_send(
+            mavlink.MAV_TYPE_QUADROTOR, autopilot, base,
+            CUSTOM_MODES[self.config.autopilot][self._mode], state)
 
     def _send_sys_status(self, now: float) -> None:
         prearm = mavlink.MAV_SYS_STATUS_PREARM_CHECK

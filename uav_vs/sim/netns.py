@@ -3,8 +3,11 @@
 Needs root. SITL runs in one with only its loopback (uav_vs.sim.sitl_process); the two
 hosts of uav_vs.sim.radio_link are two, joined by the radio link.
 """
+import ctypes
 import os
 import subprocess
+
+_CLONE_NEWNET = 0x40000000
 
 
 def add(name: str) -> None:
@@ -24,3 +27,12 @@ def delete(name: str) -> None:
 def exec_prefix(name: str) -> list[str]:
     """argv prefix that runs a command inside namespace `name`."""
     return ['ip', 'netns', 'exec', name]
+
+
+def enter(name: str) -> None:
+    """Move the calling thread into namespace `name`. Call it before any thread or node
+    starts: only the calling thread moves, and what it starts afterwards inherits it."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    with open(f'/var/run/netns/{name}') as ns:
+        if libc.setns(ns.fileno(), _CLONE_NEWNET) != 0:
+            raise OSError(ctypes.get_errno(), f'setns into {name}')

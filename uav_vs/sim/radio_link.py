@@ -8,9 +8,13 @@ every IP packet from one to the other, holding it for its delay or dropping it:
     ground ns  radio0 10.77.0.1  <->  forwarder (root ns)  <->  radio0 10.77.0.2  air ns
 
 Each direction is a `Channel`: a packet is lost with probability `loss`, or held
-`delay` +- `jitter` (uniform, as netem's `delay D J`) and never overtakes the packet
-before it (a radio's MAC delivers in order). While the link is cut every packet is
-dropped. The forwarder records what it really applied, per packet, for the tests.
+`delay` +- `jitter`, uniformly spread as with netem's `delay D J`, and never overtakes
+the packet before it (a radio's MAC delivers in order). netem draws each packet's delay
+on its own and lets packets overtake; here the delay wanders in time instead (a
+Gauss-Markov process of time constant `jitter_time`, mapped onto the uniform spread),
+so that packets sent together, as DDS sends a message's fragments and its heartbeats,
+leave together rather than all at the latest of their delays. While the link is cut
+every packet is dropped. The forwarder records what it really applied, per packet, for the tests.
 Both TUN devices are named `radio0`, so one Fast DDS profile (config/fastdds_radio.xml)
 serves both hosts.
 
@@ -19,13 +23,17 @@ serves both hosts.
 
 runs it between two existing namespaces until SIGINT or SIGTERM (then writes FILE);
 SIGUSR1 cuts the link, SIGUSR2 restores it. `TwoHosts` makes the namespaces, starts
-the forwarder and removes both again.
+the forwarder and removes both again. It also joins them by a second, perfect wire,
+`world0` (a veth pair, 10.78.0.0/24), for the simulator alone: the vehicle's true state
+that the ground cameras are rendered from (light does not travel by radio). DDS never
+uses it: config/fastdds_radio.xml allows the loopback and radio0 only.
 """
 import argparse
 import fcntl
 import heapq
 import itertools
 import json
+import math
 import os
 import random
 import select
@@ -38,12 +46,14 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from uav_vs.sim import netns
+from uav_vs.vision.ground_config import default_config_path
 
 TUNSETIFF = 0x400454CA
 IFF_TUN, IFF_NO_PI = 0x0001, 0x1000
 MTU = 1500
 SUBNET = '10.77.0'
 INTERFACE = 'radio0'
+WORLD_SUBNET, WORLD_INTERFACE = '10.78.0', 'world0'
 
 
 @dataclass(frozen=True)
@@ -53,10 +63,13 @@ class LinkConfig:
     delay: float = 0.020         # s, mean one-way delay
     jitter: float = 0.010        # s, half-width of the uniform spread around it
     loss: float = 0.02           # probability that a packet is lost
+    jitter_time: float = 0.1     # s, time constant of the delay's wander
 
     def __post_init__(self) -> None:
-        if not (self.delay >= 0 and 0 <= self.jitter <= self.delay and 0 <= self.loss < 1):
-            raise ValueError(f'expected 0 <= jitter <= delay and 0 <= loss < 1, got {self}')
+        if not (self.delay >= 0 and 0 <= self.jitter <= self.delay and 0 <= self.loss < 1
+                and self.jitter_time > 0):
+            raise ValueError('expected 0 <= jitter <= delay, 0 <= loss < 1 and '
+                             f'jitter_time > 0, got {self}')
 
 
 @dataclass
@@ -76,6 +89,7 @@ class Channel:
         self.config, self.rng = config, rng
         self.stats = ChannelStats()
         self._last_due = -float('inf')
+        self._z, self._z_time = rng.gauss(0.0, 1.0), None      # the wander, N(0, 1)
 
     def admit(self, now: float, size: int, cut: bool) -> float | None:
         """The time a packet entering at `now` leaves the link; None if it is lost."""
@@ -88,7 +102,12 @@ class Channel:
             self.stats.lost += 1
             return None
         c = self.config
-        due = max(now + c.delay + self.rng.uniform(-c.jitter, c.jitter), self._last_due)
+        if self._z_time is not None:                 # Gauss-Markov step over the gap
+            a = math.exp(-max(0.0, now - self._z_time) / c.jitter_time)
+            self._z = a * self._z + math.sqrt(1.0 - a * a) * self.rng.gauss(0.0, 1.0)
+        self._z_time = now
+        spread = math.erf(self._z / math.sqrt(2.0))  # uniform on (-1, 1)
+        due = max(now + c.delay + c.jitter * spread, self._last_due)
         self._last_due = due
         self.stats.delays.append(due - now)
         return due
@@ -191,7 +210,8 @@ def serve(ground: str, air: str, config: LinkConfig, seed: int, stats: Path | No
 class TwoHosts:
     """Two network namespaces joined by the radio link, removed again on exit.
 
-    `with TwoHosts('t1', LinkConfig()) as hosts: hosts.run('ground', [...])`
+    `with TwoHosts('t1', LinkConfig()) as hosts: subprocess.run([*hosts.exec('air'), ...],
+    env={**os.environ, **hosts.ros_env('air')})`
     """
 
     def __init__(self, tag: str, config: LinkConfig, seed: int = 0,
@@ -204,10 +224,12 @@ class TwoHosts:
         try:
             for ns in self.names.values():
                 netns.add(ns)
+            self._wire()
             argv = [sys.executable, '-m', 'uav_vs.sim.radio_link',
                     '--ground', self.names['ground'], '--air', self.names['air'],
                     '--delay', str(self.config.delay), '--jitter', str(self.config.jitter),
-                    '--loss', str(self.config.loss), '--seed', str(self.seed)]
+                    '--loss', str(self.config.loss),
+                    '--jitter-time', str(self.config.jitter_time), '--seed', str(self.seed)]
             if self.stats_path is not None:
                 argv += ['--stats', str(self.stats_path)]
             self.forwarder = subprocess.Popen(argv, stdin=subprocess.DEVNULL,
@@ -222,6 +244,16 @@ class TwoHosts:
             raise
         return self
 
+    def _wire(self) -> None:
+        """The world's wire: a veth pair, one end in each namespace."""
+        ends = [f'uvs{os.getpid()}w{host}' for host in (1, 2)]
+        ip('link', 'add', ends[0], 'type', 'veth', 'peer', 'name', ends[1])
+        for host, (ns, end) in enumerate(zip(self.names.values(), ends), start=1):
+            ip('link', 'set', 'dev', end, 'netns', ns)
+            ip('-n', ns, 'link', 'set', 'dev', end, 'name', WORLD_INTERFACE)
+            ip('-n', ns, 'addr', 'add', f'{WORLD_SUBNET}.{host}/24', 'dev', WORLD_INTERFACE)
+            ip('-n', ns, 'link', 'set', 'dev', WORLD_INTERFACE, 'up')
+
     def __exit__(self, *_) -> None:
         if self.forwarder is not None and self.forwarder.poll() is None:
             self.forwarder.send_signal(signal.SIGINT)
@@ -234,11 +266,24 @@ class TwoHosts:
             netns.delete(ns)
 
     def address(self, host: str) -> str:
+        """`host`'s address on the radio link."""
         return address(1 if host == 'ground' else 2)
+
+    def world_address(self, host: str) -> str:
+        """`host`'s address on the world's wire (the simulator's own)."""
+        return f"{WORLD_SUBNET}.{1 if host == 'ground' else 2}"
 
     def exec(self, host: str) -> list[str]:
         """argv prefix that runs a command on `host` ('ground' or 'air')."""
         return netns.exec_prefix(self.names[host])
+
+    def ros_env(self, host: str) -> dict[str, str]:
+        """The environment of a ROS process on `host`: config/fastdds_radio.xml, and
+        discovery by unicast to the other host."""
+        other = 'air' if host == 'ground' else 'ground'
+        return {'FASTRTPS_DEFAULT_PROFILES_FILE': str(default_config_path('fastdds_radio.xml')),
+                'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
+                'ROS_STATIC_PEERS': self.address(other)}
 
     def cut(self, on: bool = True) -> None:
         """Cut the link (every packet dropped) or, with on=False, restore it."""
@@ -247,6 +292,21 @@ class TwoHosts:
     def stats(self) -> dict:
         """What the forwarder applied (after exit, with `stats` given)."""
         return json.loads(self.stats_path.read_text())
+
+
+def summary(stats: dict) -> str:
+    """What the link did, a line per direction: packets, lost, cut, delay applied."""
+    c = stats['config']
+    lines = [f"radio link: {c['delay'] * 1e3:.0f} +- {c['jitter'] * 1e3:.0f} ms, "
+             f"{c['loss'] * 100:g} % loss"]
+    for direction in ('ground_to_air', 'air_to_ground'):
+        d = stats[direction]
+        held = sorted(d['held']) or [math.nan]
+        p50, p95 = (held[min(len(held) - 1, int(q * len(held)))] * 1e3 for q in (0.5, 0.95))
+        lines.append(f"  {direction.replace('_', ' ')}: {d['packets']} packets "
+                     f"({d['bytes'] / 1e6:.1f} MB), {d['lost']} lost, {d['cut']} cut; "
+                     f'held p50 {p50:.1f} ms, p95 {p95:.1f} ms')
+    return '\n'.join(lines)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -258,11 +318,13 @@ def main(argv: list[str] | None = None) -> None:
                         help='uniform jitter around the delay, s')
     parser.add_argument('--loss', type=float, default=LinkConfig.loss,
                         help='probability that a packet is lost')
+    parser.add_argument('--jitter-time', type=float, default=LinkConfig.jitter_time,
+                        help="time constant of the delay's wander, s")
     parser.add_argument('--seed', type=int, default=0, help='seed of the delays and losses')
     parser.add_argument('--stats', type=Path, help='write what was applied here on exit')
     args = parser.parse_args(argv)
     try:
-        config = LinkConfig(args.delay, args.jitter, args.loss)
+        config = LinkConfig(args.delay, args.jitter, args.loss, args.jitter_time)
     except ValueError as err:
         parser.error(str(err))
     serve(args.ground, args.air, config, args.seed, args.stats)

@@ -11,7 +11,6 @@ The binary is `UAV_VS_ARDUPILOT_SITL`, else `../shared/sitl/ardupilot/arducopter
 beside the checkout; its default parameters are the `copter.parm` beside it (ArduPilot's
 Tools/autotest/default_params/copter.parm).
 """
-import ctypes
 import os
 import subprocess
 import time
@@ -24,7 +23,6 @@ BESIDE_CHECKOUT = (Path(__file__).resolve().parents[3] / 'shared' / 'sitl' / 'ar
                    / 'arducopter')
 HOME_LLA = (-35.363261, 149.165230, 584.0)   # lat, lon deg, AMSL m (ArduPilot's CMAC)
 HOME = f'{HOME_LLA[0]},{HOME_LLA[1]},{HOME_LLA[2]:g},353'   # ... and heading, deg
-_CLONE_NEWNET = 0x40000000
 HOW_TO_GET = (f'set {SITL_ENV} to an ArduCopter SITL binary (build ArduPilot for the sitl '
               'board: ardupilot.org, "Setting up SITL on Linux", then ./waf copter) or put it '
               f'at {BESIDE_CHECKOUT}; or start SITL yourself and give its connection')
@@ -48,10 +46,7 @@ def enter_loopback_namespace(name: str) -> None:
         raise PermissionError('a loopback-only network namespace for SITL needs root; '
                               'start SITL yourself and give its connection instead')
     netns.add(name)
-    libc = ctypes.CDLL(None, use_errno=True)
-    with open(f'/var/run/netns/{name}') as ns:
-        if libc.setns(ns.fileno(), _CLONE_NEWNET) != 0:
-            raise OSError(ctypes.get_errno(), f'setns into {name}')
+    netns.enter(name)
 
 
 class ArduCopterSitl:
