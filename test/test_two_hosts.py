@@ -3,24 +3,34 @@ ground station and vehicle: `python -m uav_vs.demo --hosts 2`.
 
 The ground cameras, station, controller and the mission on one network namespace; the
 vehicle, its onboard camera and nodes and the relay on another; between them a link of
-20 +- 10 ms and 2 % loss made in user space, and DDS discovery by static peers. Judged
-on the simulator's truth (the hold), on what the link's forwarder says it carried (only
-poses, commands and diagnostics: no image crossed) and on the poses' own stamps.
+20 +- 10 ms and 2 % loss made in user space, and DDS discovery by static peers; once
+the vehicle holds, the link is cut for 3 s. Judged on the simulator's truth (the hold,
+the vehicle still while cut off), on what the link's forwarder says it carried (only
+poses, commands and diagnostics: no image crossed), on the commands the vehicle
+recorded itself and on the poses' own stamps.
 """
 import json
 import os
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from conftest import REPO
-from uav_vs.flight.report import FlightLog, FlightReport
+from uav_vs.flight.replay import commands_from_bag
+from uav_vs.bag.reader import Bag
+from uav_vs.flight.report import FlightLog, FlightReport, score_link_cut
+from uav_vs.flight.scenario import vehicle_bag
+
+CUT = 3.0        # s the radio link is cut once the vehicle holds
 
 
 @pytest.fixture(scope='module')
-def two_host_flight(tmp_path_factory) -> tuple[FlightLog, dict, str]:
+def flight(tmp_path_factory) -> SimpleNamespace:
+    """The flight's log, what the link applied (link.json), the commands the vehicle
+    recorded, the demo's output and its folder."""
     if os.geteuid() != 0:
         reason = 'two hosts are two network namespaces, which need root'
         if os.environ.get('CI'):
@@ -28,19 +38,22 @@ def two_host_flight(tmp_path_factory) -> tuple[FlightLog, dict, str]:
         pytest.skip(reason)
     out = tmp_path_factory.mktemp('two_hosts')
     run = subprocess.run([sys.executable, '-m', 'uav_vs.demo', '--hosts', '2',
-                          '--scenario', 'land_on_pad', '--sensors', 'ideal', '--out', str(out)],
+                          '--scenario', 'land_on_pad', '--sensors', 'ideal',
+                          '--cut-link', str(CUT), '--out', str(out)],
                          capture_output=True, text=True, timeout=300, cwd=REPO,
                          stdin=subprocess.DEVNULL)
     print(run.stdout)
     assert (out / 'flight.npz').exists(), f'{run.stdout[-3000:]}\n{run.stderr[-3000:]}'
-    return FlightLog.load(out / 'flight.npz'), json.loads((out / 'link.json').read_text()), \
-        run.stdout
+    return SimpleNamespace(log=FlightLog.load(out / 'flight.npz'),
+                           link=json.loads((out / 'link.json').read_text()),
+                           received=commands_from_bag(vehicle_bag(out)), stdout=run.stdout,
+                           out=out)
 
 
-def test_the_mission_flies_across_the_radio_link(two_host_flight):
+def test_the_mission_flies_across_the_radio_link(flight):
     """The same figures as test_closed_loop asks on one host: within 0.2 m of the setpoint
     over the hold, touchdown within 0.3 m of the pad; every node ended cleanly."""
-    log, link, stdout = two_host_flight
+    log, link, stdout = flight.log, flight.link, flight.stdout
     report = FlightReport.from_log(log)
     assert log.failure == '', log.failure
     assert [e.source for e in log.setpoints] == ['ground', 'onboard', 'onboard']
@@ -51,15 +64,32 @@ def test_the_mission_flies_across_the_radio_link(two_host_flight):
     assert 'cmd_vel on the vehicle:' in stdout
 
 
-def test_only_poses_commands_and_diagnostics_crossed(two_host_flight):
-    log, link, _ = two_host_flight
+def test_only_poses_commands_and_diagnostics_crossed(flight):
+    log, link = flight.log, flight.link
     up, down = link['ground_to_air'], link['air_to_ground']
     assert up['packets'] > 100 and down['packets'] > 100
-    # One 640x480 frame is 0.9 MB: a camera stream across would be tens of MB a second.
-    seconds = (log.truth.stamps[-1] - log.truth.stamps[0]) * 1e-9
-    assert (up['bytes'] + down['bytes']) / seconds < 0.5e6, (up, down, seconds)
+    # One 640x480 frame is 0.9 MB: a raw camera stream across would be ~10 MB a second ...
+    assert (up['bytes'] + down['bytes']) / link['seconds'] < 1e6, (up, down, link['seconds'])
+    # ... and neither host's recorder took the other's images (JPEG would be smaller).
+    with Bag(flight.out / 'bag') as ground, Bag(vehicle_bag(flight.out)) as vehicle:
+        assert not [t for t in ground.topics if t.startswith('/onboard/image')], ground.topics
+        assert set(vehicle.topics) == {'/cmd_vel'}
     # The onboard pose crossed the link: each arrived at least the link's least delay late.
     onboard = log.onboard
     latency = (onboard.received - onboard.stamps) * 1e-9
     least = link['config']['delay'] - link['config']['jitter']
     assert len(latency) > 50 and np.min(latency) >= least, np.min(latency)
+
+
+def test_a_cut_link_stops_the_commands_the_vehicle_holds_and_both_sides_resume(flight):
+    """While cut off the vehicle gets no command (the relay stops it after its stale-command
+    timeout) and stays put; the ground's link monitor says so, and hears it again after."""
+    log, link, stdout = flight.log, flight.link, flight.stdout
+    cut = score_link_cut(log, flight.received)
+    assert cut is not None and abs(cut.cut_s - CUT) < 0.5, cut
+    assert link['ground_to_air']['cut'] > 0 and link['air_to_ground']['cut'] > 0
+    assert cut.command_gap_s >= CUT - 0.1, cut                # nothing came through
+    assert 0.0 < cut.reported_after_s < CUT, cut               # said while it lasted ...
+    assert 0.0 < cut.heard_again_after_s < 10.0, cut           # ... and heard again after
+    assert cut.drift_m < 0.1, cut                               # hovering, not flying off
+    assert 'link cut for' in stdout

@@ -31,7 +31,9 @@ adds how close the vehicle stayed to it.
 `make demo HOSTS=2` (`--hosts 2`, root) runs the ground station and the vehicle on two
 hosts, network namespaces joined by a radio link of 20 +- 10 ms and 2 % loss
 (uav_vs.sim.radio_link), DDS across it by static peers; the summary adds what the link
-carried and the commands as the vehicle received them.
+carried and the commands as the vehicle received them. `CUT_LINK=3` (`--cut-link 3`)
+cuts the link for 3 s once the vehicle holds: the relay stops the vehicle, the ground's
+link_monitor_node reports it, both go on when it returns.
 
 `make demo BAG=<bag>` (`--bag`) replays a bag instead (the flight bag a closed-loop run
 records into the output folder, or bags/ground_trinocular, bags/onboard) through the
@@ -50,7 +52,7 @@ from uav_vs.bag.reader import BagError
 from uav_vs.flight.plots import plot_flight
 from uav_vs.flight.recorder import MissionError
 from uav_vs.flight.replay import commands_from_bag, replay_flight
-from uav_vs.flight.report import FlightLog, FlightReport, command_latencies
+from uav_vs.flight.report import FlightLog, FlightReport, command_latencies, score_link_cut
 from uav_vs.flight.scenario import (GPS_DENIED_PARAMS, SCENARIOS, Configs, SitlLink, fly,
                                     vehicle_bag)
 from uav_vs.sim import netns, radio_link
@@ -76,7 +78,8 @@ def replay(bag: Path, out: Path, rate: float) -> int:
 
 
 def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
-                sitl: SitlLink | None = None, hosts: TwoHosts | None = None) -> int:
+                sitl: SitlLink | None = None, hosts: TwoHosts | None = None,
+                cut_link: float = 0.0) -> int:
     """Fly a scenario (recording its bag into out/bag) with the `sensors` profile; print
     and save the summary and plots."""
     scenario = SCENARIOS[scenario_name]
@@ -94,12 +97,15 @@ def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
           f"sim_world ({vehicle}) + {' + '.join(nodes)}, recorded to {out}/bag "
           f'(logs in {out}/logs/)', flush=True)
     return report(fly(scenario, out, Configs(sensors=profile), autopilot=autopilot, sitl=sitl,
-                      startup_timeout=SITL_STARTUP_S if sitl else 90.0, hosts=hosts), out)
+                      startup_timeout=SITL_STARTUP_S if sitl else 90.0, hosts=hosts,
+                      cut_link=cut_link), out)
 
 
-def two_hosts_closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str) -> int:
+def two_hosts_closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
+                          cut_link: float = 0.0) -> int:
     """The closed loop on two hosts joined by the default radio link (radio_link): this
-    process enters the ground host."""
+    process enters the ground host. With `cut_link` the link is cut for that long once the
+    vehicle holds."""
     hosts = TwoHosts(str(os.getpid()), LinkConfig(), stats=out / 'link.json')
     try:
         hosts.__enter__()
@@ -109,18 +115,26 @@ def two_hosts_closed_loop(scenario_name: str, out: Path, autopilot: str, sensors
     try:
         netns.enter(hosts.names['ground'])
         os.environ.update(hosts.ros_env('ground'))
-        code = closed_loop(scenario_name, out, autopilot, sensors, hosts=hosts)
+        code = closed_loop(scenario_name, out, autopilot, sensors, hosts=hosts,
+                           cut_link=cut_link)
     finally:
         hosts.__exit__()
     summary = radio_link.summary(hosts.stats())
-    latency = []
     if vehicle_bag(out).exists() and (out / 'flight.npz').exists():
         log = FlightLog.load(out / 'flight.npz')
-        latency = command_latencies(replace(log, commands=commands_from_bag(vehicle_bag(out))))
-    if len(latency):
-        summary += (f'\ncmd_vel on the vehicle: {len(latency)} commands from vision poses; '
-                    f'image stamp to command: median {np.median(latency):.1f} ms, '
-                    f'p95 {np.percentile(latency, 95):.1f} ms')
+        received = commands_from_bag(vehicle_bag(out))
+        latency = command_latencies(replace(log, commands=received))
+        if len(latency):
+            summary += (f'\ncmd_vel on the vehicle: {len(latency)} commands from vision poses; '
+                        f'image stamp to command: median {np.median(latency):.1f} ms, '
+                        f'p95 {np.percentile(latency, 95):.1f} ms')
+        cut = score_link_cut(log, received)
+        if cut is not None:
+            summary += (f'\nlink cut for {cut.cut_s:.1f} s: the ground reported it after '
+                        f'{cut.reported_after_s:.2f} s and heard the vehicle again '
+                        f'{cut.heard_again_after_s:.2f} s after it returned; no cmd_vel on the '
+                        f'vehicle for {cut.command_gap_s:.2f} s; the vehicle moved '
+                        f'{cut.drift_m * 100:.1f} cm meanwhile')
     print(summary)
     with open(out / 'summary.txt', 'a') as f:
         f.write(summary + '\n')
@@ -201,6 +215,9 @@ def main(argv: list[str] | None = None) -> int:
                         help='2: the ground station and the vehicle on two hosts (network '
                         'namespaces, needs root) joined by a radio link of 20 +- 10 ms and '
                         '2 %% loss (default %(default)s)')
+    parser.add_argument('--cut-link', type=float, default=0.0, metavar='SECONDS',
+                        help='with --hosts 2: cut the radio link for SECONDS once the '
+                        'vehicle holds (default: never)')
     parser.add_argument('--out', type=Path, help='output folder (default demo-output, '
                         'demo-output/replay with --bag)')
     args = parser.parse_args(argv)
@@ -219,8 +236,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.hosts == 2:
             parser.error('--hosts 2 flies the simulated vehicle: --autopilot ardupilot or px4')
         return sitl_closed_loop(args.scenario, out, args.sensors, args.sitl, args.sitl_truth)
+    if args.cut_link and args.hosts != 2:
+        parser.error('--cut-link cuts the radio link between two hosts: give --hosts 2')
     if args.hosts == 2:
-        return two_hosts_closed_loop(args.scenario, out, args.autopilot, args.sensors)
+        return two_hosts_closed_loop(args.scenario, out, args.autopilot, args.sensors,
+                                     args.cut_link)
     return closed_loop(args.scenario, out, args.autopilot, args.sensors)
 
 

@@ -124,6 +124,12 @@ class FlightLog:
     follow_end_ns: int | None = None
     # The topics the controller and the follower subscribed to while following, by node.
     follow_inputs: dict[str, list[str]] = field(default_factory=dict)
+    # Two hosts, the radio link cut mid-flight: cut and restored; the ground's
+    # link_monitor_node first said "not heard", then "heard" again (its diagnostics' receipt).
+    link_cut_ns: int | None = None
+    link_restored_ns: int | None = None
+    link_reported_ns: int | None = None
+    link_heard_again_ns: int | None = None
 
     def save(self, path: Path) -> None:
         arrays = {f'{name}.{key}': value for name in TRACKS
@@ -436,6 +442,38 @@ def within(track: PoseTrack, stamps: np.ndarray) -> np.ndarray:
     if not len(track):
         return np.zeros(len(stamps), bool)
     return (stamps >= track.stamps[0]) & (stamps <= track.stamps[-1])
+
+
+@dataclass(frozen=True)
+class LinkCutScore:
+    """The radio link cut mid-flight, as each side saw it."""
+    cut_s: float                     # how long the link was cut
+    reported_after_s: float          # the ground's link monitor said "not heard" (nan: never)
+    heard_again_after_s: float       # ... and "heard" once the link was back
+    command_gap_s: float             # the longest time without cmd_vel on the vehicle
+    drift_m: float                   # how far the vehicle moved from the cut to the restore
+
+
+def score_link_cut(log: FlightLog, vehicle_commands: CommandTrack) -> LinkCutScore | None:
+    """The link cut of `log`, with the commands the vehicle received (its own recording)."""
+    if log.link_cut_ns is None or log.link_restored_ns is None:
+        return None
+    cut, back = log.link_cut_ns, log.link_restored_ns
+
+    def after(ns: int | None, since: int) -> float:
+        return math.nan if ns is None else (ns - since) * 1e-9
+
+    arrivals = np.sort(vehicle_commands.received)
+    near = arrivals[(arrivals >= cut - 1e9) & (arrivals <= back + 1e9)]
+    gap = float(np.diff(near).max()) * 1e-9 if len(near) > 1 else math.nan
+    truth = log.truth
+    during = (truth.stamps >= cut) & (truth.stamps <= back)
+    drift = math.nan
+    if during.any():
+        p = truth.positions[during]
+        drift = float(np.linalg.norm(p - p[0], axis=1).max())
+    return LinkCutScore((back - cut) * 1e-9, after(log.link_reported_ns, cut),
+                        after(log.link_heard_again_ns, back), gap, drift)
 
 
 def interpolate(track: PoseTrack, stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

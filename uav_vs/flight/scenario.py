@@ -150,7 +150,7 @@ class SitlLink:
 def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
         startup_timeout: float = 90.0, record: bool = True,
         autopilot: str = 'ardupilot', sitl: SitlLink | None = None,
-        hosts: TwoHosts | None = None) -> FlightLog:
+        hosts: TwoHosts | None = None, cut_link: float = 0.0) -> FlightLog:
     """Start the graph, fly `scenario`, stop the graph; node logs go to out_dir/logs and,
     with `record`, the flight's topics (recorded_topics) to the bag out_dir/bag. The
     vehicle is the simulated one, behaving as `autopilot` ('ardupilot' or 'px4') does,
@@ -161,6 +161,8 @@ def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
     recorder on `ground`, which the calling thread must have entered (netns.enter, with
     hosts.ros_env('ground') in os.environ); the vehicle, its onboard camera and nodes
     and the relay on `air`. Only poses, commands and diagnostics cross the link.
+    link_monitor_node on the ground says whether the vehicle is heard; with `cut_link` the
+    link is cut for that many seconds once the hold is reached, then the mission goes on.
 
     A step that fails ends the mission (the vehicle is told to land where it is) and
     is named in the log's `failure`.
@@ -169,8 +171,8 @@ def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
     for old in (bag, vehicle_bag(out_dir)) if record else ():
         if old.exists():
             shutil.rmtree(old)
-    return _Mission(scenario, out_dir / 'logs', configs, bag, autopilot, sitl, hosts).run(
-        startup_timeout)
+    return _Mission(scenario, out_dir / 'logs', configs, bag, autopilot, sitl, hosts,
+                    cut_link).run(startup_timeout)
 
 
 def recorded_topics(cameras: list[str], onboard_images: bool = True) -> list[str]:
@@ -203,9 +205,9 @@ class _Mission:
 
     def __init__(self, scenario: Scenario, log_dir: Path, configs: Configs,
                  bag: Path | None, autopilot: str, sitl: SitlLink | None,
-                 hosts: TwoHosts | None) -> None:
+                 hosts: TwoHosts | None, cut_link: float) -> None:
         self.scenario, self.log_dir, self.configs, self.bag = scenario, log_dir, configs, bag
-        self.autopilot, self.sitl, self.hosts = autopilot, sitl, hosts
+        self.autopilot, self.sitl, self.hosts, self.cut_link = autopilot, sitl, hosts, cut_link
         self.procs: dict[str, subprocess.Popen] = {}      # running
         self.retired: list[tuple[str, subprocess.Popen]] = []   # stopped on purpose
         self.controller_source = ''
@@ -278,6 +280,9 @@ class _Mission:
                 *world, '-r', '__node:=sim_cameras', '-p', 'vehicle.model:=sitl',
                 '-p', f'vehicle.sitl_connection:=tcp:{truth}', '-p', 'onboard.rate:=0.0'])
         self.procs.update(ground_graph(c.ground, cameras, self.log_dir, layout=c.ground_layout))
+        if self.hosts is not None:
+            self._start('link_monitor_node', 'link_monitor_node', [
+                '--params-file', str(default_config_path('link_monitor.yaml'))])
         self._start_controller('ground')
         self._wait('sim_world', lambda: '/sim_world' in self.rec.reporting, timeout)
         if self.hosts is not None:
@@ -338,6 +343,8 @@ class _Mission:
         rec.call(Trigger, 'set_guided', Trigger.Request(), 15.0)
         self._enable_controller()
         self._fly_to('hold', s.hold, 'ground')
+        if self.cut_link > 0:
+            self._cut_link(self.cut_link)
         if s.follow is not None:
             self._follow(s.follow)
         if s.setpoints or s.landing is not None:
@@ -348,6 +355,29 @@ class _Mission:
             self._land_on_pad(s.landing)
         else:
             self._land()
+
+    def _cut_link(self, seconds: float) -> None:
+        """Cut the radio link for `seconds`, noting when the ground's link monitor says the
+        vehicle is not heard, and heard again once it is restored."""
+        monitor = '/link_monitor_node'
+        ev = self.events
+
+        def said(prefix: str, key: str) -> bool:
+            if ev.get(key) is None and self.rec.messages.get(monitor, '').startswith(prefix):
+                ev[key] = time.time_ns()
+            return ev.get(key) is not None
+
+        self.hosts.cut(True)
+        ev['link_cut_ns'] = time.time_ns()
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self._check_alive()
+            said('not heard', 'link_reported_ns')
+            time.sleep(0.02)
+        self.hosts.cut(False)
+        ev['link_restored_ns'] = time.time_ns()
+        self._wait('the link monitor to hear the vehicle again',
+                   lambda: said('heard', 'link_heard_again_ns'), 10.0)
 
     def _enable_controller(self, on: bool = True) -> None:
         """Enable (disable) the controller once the ROS graph shows it on its pose input."""

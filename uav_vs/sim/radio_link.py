@@ -199,10 +199,11 @@ def serve(ground: str, air: str, config: LinkConfig, seed: int, stats: Path | No
     signal.signal(signal.SIGUSR1, lambda *_: cut(True))
     signal.signal(signal.SIGUSR2, lambda *_: cut(False))
     print(f'link up: {ground} {address(1)} <-> {air} {address(2)}, {config}', flush=True)
+    start = time.monotonic()
     forwarder.run()
     if stats is not None:
         stats.write_text(json.dumps({
-            'config': asdict(config),
+            'config': asdict(config), 'seconds': time.monotonic() - start,
             'ground_to_air': asdict(forwarder.channels[fds[0]].stats),
             'air_to_ground': asdict(forwarder.channels[fds[1]].stats)}))
 
@@ -298,13 +299,14 @@ def summary(stats: dict) -> str:
     """What the link did, a line per direction: packets, lost, cut, delay applied."""
     c = stats['config']
     lines = [f"radio link: {c['delay'] * 1e3:.0f} +- {c['jitter'] * 1e3:.0f} ms, "
-             f"{c['loss'] * 100:g} % loss"]
+             f"{c['loss'] * 100:g} % loss, up {stats['seconds']:.0f} s"]
     for direction in ('ground_to_air', 'air_to_ground'):
         d = stats[direction]
         held = sorted(d['held']) or [math.nan]
         p50, p95 = (held[min(len(held) - 1, int(q * len(held)))] * 1e3 for q in (0.5, 0.95))
         lines.append(f"  {direction.replace('_', ' ')}: {d['packets']} packets "
-                     f"({d['bytes'] / 1e6:.1f} MB), {d['lost']} lost, {d['cut']} cut; "
+                     f"({d['bytes'] / 1e6:.1f} MB, {d['bytes'] / stats['seconds'] / 1e3:.0f} "
+                     f"kB/s), {d['lost']} lost, {d['cut']} cut; "
                      f'held p50 {p50:.1f} ms, p95 {p95:.1f} ms')
     return '\n'.join(lines)
 

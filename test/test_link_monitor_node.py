@@ -1,0 +1,60 @@
+"""link_monitor_node: the other host heard or not, on /diagnostics, judged by the node's
+own account of the silence; a bad parameter stops it with one line."""
+import subprocess
+import time
+from pathlib import Path
+
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry
+
+from conftest import REPO, wait_for
+from uav_vs.graph import executable
+from uav_vs.vision.ground_config import read_params_file
+
+
+def test_silence_is_an_outage_until_messages_come_again(ros_node, processes):
+    processes('link_monitor_node', ['-p', 'link_monitor.timeout:=0.3',
+                                    '-p', 'link_monitor.diagnostics_period:=0.05'],
+              label='monitor')
+    diag: list[dict] = []
+    ros_node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: diag.extend(
+        {'level': s.level[0], 'message': s.message, **{kv.key: kv.value for kv in s.values}}
+        for s in m.status if s.name == '/link_monitor_node'), 10)
+    pub = ros_node.create_publisher(Odometry, '/autopilot/odom', 10)
+    assert wait_for(lambda: diag and diag[-1]['message'].startswith('never heard'), 30), diag[-1:]
+    assert diag[-1]['level'] == 1
+
+    def send_until(predicate) -> None:
+        deadline = time.monotonic() + 30
+        while not predicate() and time.monotonic() < deadline:
+            pub.publish(Odometry())
+            time.sleep(0.02)
+        assert predicate(), diag[-1:]
+
+    send_until(lambda: diag[-1]['message'] == 'heard on /autopilot/odom')
+    assert diag[-1]['level'] == 0
+    before = int(diag[-1]['outages'])      # a stall of this process may have made some
+    # Silence: ERROR once the node itself has seen more than the timeout without one.
+    assert wait_for(lambda: diag[-1]['level'] == 2, 10), diag[-1:]
+    assert diag[-1]['message'].startswith('not heard on /autopilot/odom for')
+    assert float(diag[-1]['silent']) > 0.3 and int(diag[-1]['outages']) == before + 1
+    send_until(lambda: diag[-1]['level'] == 0)
+    assert float(diag[-1]['longest_silence']) > 0.3, diag[-1]
+    assert 'not heard' in processes.log('monitor')
+
+
+def test_a_bad_parameter_stops_the_node_with_one_line(tmp_path: Path):
+    run = subprocess.run([executable('link_monitor_node'), '--ros-args',
+                          '-p', 'link_monitor.timeout:=0.0'],
+                         capture_output=True, text=True, timeout=60, cwd=tmp_path,
+                         stdin=subprocess.DEVNULL)
+    assert run.returncode == 2
+    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
+    assert len(fatal) == 1 and 'link_monitor.timeout' in fatal[0], run.stdout + run.stderr
+
+
+def test_every_parameter_is_in_the_yaml_with_its_default():
+    from uav_vs.nodes.link_monitor_node import PARAMS
+
+    yaml = read_params_file(REPO / 'config' / 'link_monitor.yaml')
+    assert yaml == {spec.name: spec.default for spec in PARAMS}
