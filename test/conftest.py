@@ -166,6 +166,18 @@ def processes(tmp_path):
     graph.stop(started)
 
 
+def refused_at_start(name: str, ros_args: list[str], cwd: Path) -> str:
+    """The one FATAL line with which node `name` refuses `ros_args` at start-up, exiting
+    with status 2; the test fails otherwise."""
+    from uav_vs.graph import executable
+
+    run = subprocess.run([executable(name), '--ros-args', *ros_args], capture_output=True,
+                         text=True, timeout=60, cwd=cwd, stdin=subprocess.DEVNULL)
+    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
+    assert run.returncode == 2 and len(fatal) == 1, run.stdout + run.stderr
+    return fatal[0]
+
+
 def wait_for(predicate, timeout: float, period: float = 0.02) -> bool:
     """Poll predicate until true or timeout; returns its last value."""
     import time

@@ -1,14 +1,12 @@
 """link_monitor_node: the other host heard or not, on /diagnostics, judged by the node's
 own account of the silence; a bad parameter stops it with one line."""
-import subprocess
 import time
 from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 
-from conftest import REPO, wait_for
-from uav_vs.graph import executable
+from conftest import REPO, refused_at_start, wait_for
 from uav_vs.vision.ground_config import read_params_file
 
 
@@ -44,13 +42,8 @@ def test_silence_is_an_outage_until_messages_come_again(ros_node, processes):
 
 
 def test_a_bad_parameter_stops_the_node_with_one_line(tmp_path: Path):
-    run = subprocess.run([executable('link_monitor_node'), '--ros-args',
-                          '-p', 'link_monitor.timeout:=0.0'],
-                         capture_output=True, text=True, timeout=60, cwd=tmp_path,
-                         stdin=subprocess.DEVNULL)
-    assert run.returncode == 2
-    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
-    assert len(fatal) == 1 and 'link_monitor.timeout' in fatal[0], run.stdout + run.stderr
+    fatal = refused_at_start('link_monitor_node', ['-p', 'link_monitor.timeout:=0.0'], tmp_path)
+    assert 'link_monitor.timeout' in fatal, fatal
 
 
 def test_every_parameter_is_in_the_yaml_with_its_default():

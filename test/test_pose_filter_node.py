@@ -5,7 +5,6 @@ the time they stand for, so every fused estimate has an analytic answer at its o
 malformed input is counted and skipped; when the sources stop the node goes quiet; a
 bad parameter stops it with one line."""
 import math
-import subprocess
 import time
 from pathlib import Path
 
@@ -16,8 +15,7 @@ from nav_msgs.msg import Odometry
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Header
 
-from conftest import REPO, wait_for
-from uav_vs.graph import executable
+from conftest import REPO, refused_at_start, wait_for
 from uav_vs.ros.convert import msg_to_odometry, pose_to_msg, stamp_to_ns, yaw_quaternion
 from uav_vs.vision.ground_config import read_params_file
 
@@ -97,13 +95,9 @@ def test_two_sources_fused_better_than_either_and_quiet_when_they_stop(ros_node,
 
 
 def test_a_bad_parameter_stops_the_node_with_one_line(tmp_path: Path):
-    run = subprocess.run([executable('pose_filter_node'), '--ros-args',
-                          '-p', 'pose_filter.position_sigmas:=[0.03]'],
-                         capture_output=True, text=True, timeout=60, cwd=tmp_path,
-                         stdin=subprocess.DEVNULL)
-    assert run.returncode == 2
-    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
-    assert len(fatal) == 1 and 'pose_filter.position_sigmas' in fatal[0], run.stdout + run.stderr
+    fatal = refused_at_start('pose_filter_node', ['-p', 'pose_filter.position_sigmas:=[0.03]'],
+                             tmp_path)
+    assert 'pose_filter.position_sigmas' in fatal, fatal
 
 
 def test_every_parameter_is_in_the_yaml_with_its_default():

@@ -4,7 +4,6 @@ The polygons are the projections of a known ground target through the onboard ca
 of config/onboard.yaml, so every output has an analytic answer; malformed input is
 counted and skipped, a bad parameter stops the node with one line."""
 import math
-import subprocess
 from pathlib import Path
 
 import cv2
@@ -16,8 +15,7 @@ from nav_msgs.msg import Odometry
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Header
 
-from conftest import REPO, wait_for
-from uav_vs.graph import executable
+from conftest import REPO, refused_at_start, wait_for
 from uav_vs.ros.convert import (msg_to_pose, ns_to_stamp, odometry_to_msg, points_to_polygon,
                                 pose_to_msg, yaw_of)
 from uav_vs.sim.ground_scene import rot_z
@@ -127,13 +125,9 @@ def test_follows_a_target_and_skips_malformed_input(ros_node, processes):
 
 
 def test_a_bad_parameter_stops_the_node_with_one_line(tmp_path: Path):
-    run = subprocess.run([executable('target_follower_node'), '--ros-args', '--params-file',
-                          str(CONFIG), '-p', 'follow.height:=-1.0'],
-                         capture_output=True, text=True, timeout=60, cwd=tmp_path,
-                         stdin=subprocess.DEVNULL)
-    assert run.returncode == 2
-    fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
-    assert len(fatal) == 1 and 'follow.height' in fatal[0], run.stdout + run.stderr
+    fatal = refused_at_start('target_follower_node', ['--params-file', str(CONFIG),
+                                                      '-p', 'follow.height:=-1.0'], tmp_path)
+    assert 'follow.height' in fatal, fatal
 
 
 def test_every_follow_parameter_is_in_the_yaml_with_its_default():
