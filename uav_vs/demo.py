@@ -128,6 +128,8 @@ def two_hosts_closed_loop(scenario_name: str, out: Path, autopilot: str, sensors
             summary += (f'\ncmd_vel on the vehicle: {len(latency)} commands from vision poses; '
                         f'image stamp to command: median {np.median(latency):.1f} ms, '
                         f'p95 {np.percentile(latency, 95):.1f} ms')
+        summary += f'\nCPU over the {log.run_s:.0f} s run: ' + ', '.join(
+            f'{host} {s:.0f} s ({s / log.run_s:.2f} of a core)' for host, s in log.cpu_s.items())
         cut = score_link_cut(log, received)
         if cut is not None:
             summary += (f'\nlink cut for {cut.cut_s:.1f} s: the ground reported it after '

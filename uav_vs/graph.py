@@ -4,6 +4,7 @@ There is no `launch` on PyPI; this is the small part of it the demo, the tests a
 the benchmarks need: start an executable with `--ros-args ...`, log its output to a
 file, and stop it with SIGINT, escalating to SIGTERM and SIGKILL.
 """
+import math
 import os
 import shutil
 import signal
@@ -52,9 +53,12 @@ def stop(procs: list[subprocess.Popen], timeout: float = 5.0) -> list[int]:
     still removing a peer that has just left (eProsima/Fast-DDS#6502): a graph stopped all
     at once then leaves a node hung in its teardown. Each process takes ~25 ms to stop,
     and SETTLE_S lets the ones still running forget it before the next is stopped. The
-    shared memory of a process that did not stop cleanly is removed (dds_shm).
+    shared memory of a process that did not stop cleanly is removed (dds_shm). Each
+    process's CPU time so far is kept as its `cpu_s`.
     """
     running = [p for p in procs if p.poll() is None]
+    for p in running:
+        p.cpu_s = cpu_seconds(p.pid)
     for i, p in enumerate(reversed(running)):
         if i:
             time.sleep(SETTLE_S)
@@ -68,6 +72,15 @@ def stop(procs: list[subprocess.Popen], timeout: float = 5.0) -> list[int]:
             _wait(p, timeout)
     dds_shm.remove_orphaned()
     return [p.returncode for p in procs]
+
+
+def cpu_seconds(pid: int) -> float:
+    """User and system CPU time of a living process, s (nan once it has gone)."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    except OSError:
+        return math.nan
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
 def _wait(proc: subprocess.Popen, timeout: float) -> None:

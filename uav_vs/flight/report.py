@@ -130,6 +130,10 @@ class FlightLog:
     link_restored_ns: int | None = None
     link_reported_ns: int | None = None
     link_heard_again_ns: int | None = None
+    # CPU time of the graph's processes (and the mission's) by host, s: 'ground', 'air';
+    # over run_s s from the graph's start to its stop.
+    cpu_s: dict[str, float] = field(default_factory=dict)
+    run_s: float = math.nan
 
     def save(self, path: Path) -> None:
         arrays = {f'{name}.{key}': value for name in TRACKS

@@ -24,6 +24,7 @@ estimate; it records them, with both vision poses and the commands, into a
 `FlightLog` that uav_vs.flight.report scores.
 """
 import math
+import resource
 import shutil
 import socket
 import subprocess
@@ -217,6 +218,7 @@ class _Mission:
     def run(self, startup_timeout: float) -> FlightLog:
         cameras = list(read_params_file(self.configs.ground)['cameras.names'])
         self.rec = FlightRecorder(cameras[0])
+        start = time.monotonic()
         try:
             self._start_graph(cameras, startup_timeout)
             self._fly(startup_timeout)
@@ -225,10 +227,15 @@ class _Mission:
             self._land_anyway()
         finally:
             graph.stop(list(self.procs.values()))
-            log = self.rec.log(self.scenario.name, **self.events)
+            log = self.rec.log(self.scenario.name, run_s=time.monotonic() - start, **self.events)
             self.rec.close()
         procs = dict([*self.retired, *self.procs.items()])
         log.exit_codes = {label: proc.returncode for label, proc in procs.items()}
+        log.cpu_s = {'ground': resource.getrusage(resource.RUSAGE_SELF).ru_utime
+                     + resource.getrusage(resource.RUSAGE_SELF).ru_stime}
+        for proc in procs.values():
+            host = getattr(proc, 'host', 'ground')
+            log.cpu_s[host] = log.cpu_s.get(host, 0.0) + getattr(proc, 'cpu_s', math.nan)
         log.failed_logs = graph.failed_logs(procs)
         return log
 
@@ -241,6 +248,7 @@ class _Mission:
             wrap, env = self.hosts.exec('air'), self.hosts.ros_env('air')
         self.procs[label] = graph.start(name, ros_args, self.log_dir, log_name or label,
                                         env=env, args=args, wrap=wrap)
+        self.procs[label].host = 'air' if wrap else 'ground'
 
     def _start_graph(self, cameras: list[str], timeout: float) -> None:
         """The recorder, then everything but the onboard pose node; the relay once the
