@@ -231,8 +231,8 @@ class _Mission:
             self.rec.close()
         procs = dict([*self.retired, *self.procs.items()])
         log.exit_codes = {label: proc.returncode for label, proc in procs.items()}
-        log.cpu_s = {'ground': resource.getrusage(resource.RUSAGE_SELF).ru_utime
-                     + resource.getrusage(resource.RUSAGE_SELF).ru_stime}
+        mission = resource.getrusage(resource.RUSAGE_SELF)
+        log.cpu_s = {'ground': mission.ru_utime + mission.ru_stime}
         for proc in procs.values():
             host = getattr(proc, 'host', 'ground')
             log.cpu_s[host] = log.cpu_s.get(host, 0.0) + getattr(proc, 'cpu_s', math.nan)
@@ -292,9 +292,9 @@ class _Mission:
             self._start('link_monitor_node', 'link_monitor_node', [
                 '--params-file', str(default_config_path('link_monitor.yaml'))])
         self._start_controller('ground')
-        self._wait('sim_world', lambda: '/sim_world' in self.rec.reporting, timeout)
-        if self.hosts is not None:
-            self._wait('sim_cameras', lambda: '/sim_cameras' in self.rec.reporting, timeout)
+        for sim in ('sim_world', 'sim_cameras'):
+            if sim in self.procs:
+                self._wait(sim, lambda: f'/{sim}' in self.rec.reporting, timeout)
         if self.scenario.gps_denied:
             if self.sitl is None:
                 raise MissionError(f'{self.scenario.name} needs an autopilot with an EKF: '

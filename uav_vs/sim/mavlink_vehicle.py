@@ -224,6 +224,10 @@ class MavlinkVehicle:
                             else _server(config.truth_connection, config.system_id))
         self._truth_intervals = {mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0}
         self._truth_next: dict[int, float] = {}
+        self._truth_senders = {
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._send_heartbeat,
+            mavlink.MAVLINK_MSG_ID_SIM_STATE: self._send_sim_state,
+            mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: self._send_extended_sys_state}
         if config.signing_key is not None:
             self._conn.setup_signing(config.signing_key, sign_outgoing=True)
         self._lock = threading.Lock()
@@ -571,12 +575,9 @@ class MavlinkVehicle:
                         self._truth_intervals.pop(int(msg.param1), None)
                 conn.mav.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(),
                                           msg.get_srcComponent())
-        senders = {mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._send_heartbeat,
-                   mavlink.MAVLINK_MSG_ID_SIM_STATE: self._send_sim_state,
-                   mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: self._send_extended_sys_state}
         for msg_id, interval in self._truth_intervals.items():
             if now >= self._truth_next.get(msg_id, 0.0):
-                senders[msg_id](now, conn)
+                self._truth_senders[msg_id](now, conn)
                 self._truth_next[msg_id] = max(self._truth_next.get(msg_id, now) + interval, now)
 
     def _send_sim_state(self, now: float, conn) -> None:

@@ -170,6 +170,17 @@ def ip(*args: str) -> None:
     subprocess.run(['ip', *args], check=True, capture_output=True, text=True)
 
 
+def place(device: str, ns: str, name: str, cidr: str) -> None:
+    """Move `device` into namespace `ns` as `name`, IPv4 address `cidr` only (no IPv6:
+    nothing but what the hosts send crosses), and bring it up."""
+    ip('link', 'set', 'dev', device, 'netns', ns)
+    ip('-n', ns, 'link', 'set', 'dev', device, 'name', name)
+    subprocess.run([*netns.exec_prefix(ns), 'sysctl', '-q', '-w',
+                    f'net.ipv6.conf.{name}.disable_ipv6=1'], check=True)
+    ip('-n', ns, 'addr', 'add', cidr, 'dev', name)
+    ip('-n', ns, 'link', 'set', 'dev', name, 'up')
+
+
 def address(host: int) -> str:
     """Address of host 1 (ground) or 2 (air) on the link."""
     return f'{SUBNET}.{host}'
@@ -180,12 +191,7 @@ def serve(ground: str, air: str, config: LinkConfig, seed: int, stats: Path | No
     names = (f'uvs{os.getpid()}g', f'uvs{os.getpid()}a')
     fds = (open_tun(names[0]), open_tun(names[1]))
     for host, (ns, name) in enumerate(zip((ground, air), names), start=1):
-        ip('link', 'set', 'dev', name, 'netns', ns)
-        ip('-n', ns, 'link', 'set', 'dev', name, 'name', INTERFACE)
-        subprocess.run([*netns.exec_prefix(ns), 'sysctl', '-q', '-w',
-                        f'net.ipv6.conf.{INTERFACE}.disable_ipv6=1'], check=True)
-        ip('-n', ns, 'link', 'set', 'dev', INTERFACE, 'mtu', str(MTU), 'up')
-        ip('-n', ns, 'addr', 'add', f'{address(host)}/24', 'dev', INTERFACE)
+        place(name, ns, INTERFACE, f'{address(host)}/24')
     forwarder = Forwarder(fds, config, seed)
 
     def stop(*_) -> None:
@@ -250,10 +256,7 @@ class TwoHosts:
         ends = [f'uvs{os.getpid()}w{host}' for host in (1, 2)]
         ip('link', 'add', ends[0], 'type', 'veth', 'peer', 'name', ends[1])
         for host, (ns, end) in enumerate(zip(self.names.values(), ends), start=1):
-            ip('link', 'set', 'dev', end, 'netns', ns)
-            ip('-n', ns, 'link', 'set', 'dev', end, 'name', WORLD_INTERFACE)
-            ip('-n', ns, 'addr', 'add', f'{WORLD_SUBNET}.{host}/24', 'dev', WORLD_INTERFACE)
-            ip('-n', ns, 'link', 'set', 'dev', WORLD_INTERFACE, 'up')
+            place(end, ns, WORLD_INTERFACE, f'{WORLD_SUBNET}.{host}/24')
 
     def __exit__(self, *_) -> None:
         if self.forwarder is not None and self.forwarder.poll() is None:
