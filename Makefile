@@ -23,13 +23,14 @@ UBUNTU_VENV := .venv-ubuntu2404
 UBUNTU_BIN := $(abspath $(UBUNTU_VENV))/bin
 UBUNTU_STAMP := $(UBUNTU_VENV)/.installed
 # The whole suite by default; CI runs CORE_TESTS there (`make test-ubuntu2404
-# UBUNTU_TESTS='$$(CORE_TESTS)'`): the algorithms, the simulator and the MAVLink session,
-# the code that calls NumPy, OpenCV and SciPy, without starting ROS processes.
+# UBUNTU_TESTS='$$(CORE_TESTS)'`): the algorithms, the simulator and the MAVLink session's
+# limits, the code that calls NumPy, OpenCV and SciPy, without starting ROS processes (the
+# session's real-time flights use the same pymavlink in both venvs: not again there).
 UBUNTU_TESTS ?= test
 CORE_TESTS := $(addprefix test/test_,$(addsuffix .py,body_pose calibration_error camera \
 	camera_effects delay_line docs features frame_sync frames fuzzy_control fuzzy_engine \
-	ground_scene homography klt landmarks landmarks_megamind liveness mavlink_guards \
-	mavlink_session onboard_scene oxford plane_geometry plane_pose pose_filter sensor_switches \
+	ground_scene homography klt landmarks landmarks_megamind liveness mavlink_limits \
+	onboard_scene oxford plane_geometry plane_pose pose_filter sensor_switches \
 	servo sim_world target_tracking template_align triangulation))
 
 .PHONY: install test test-loaded test-ubuntu2404 fuzz bench demo clean
