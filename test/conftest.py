@@ -59,7 +59,7 @@ GRAPH_RERUNS = 1
 # go first, longest first, so that the run does not end with one worker flying the last
 # of them while the other idles.
 LONGEST_FIRST = ('test_sitl_closed_loop', 'test_fuzz_nodes', 'test_mavlink_relay_node',
-                 'test_closed_loop', 'test_calibrated_flight', 'test_two_hosts',
+                 'test_closed_loop', 'test_calibrated_flight', 'test_two_hosts', 'test_fleet',
                  'test_mavlink_session', 'test_mavlink_vehicle', 'test_fault_injection', 'test_mavlink_guards',
                  'test_ground_nodes', 'test_launch', 'test_world_switches', 'test_live_params')
 

@@ -17,9 +17,14 @@ from conftest import REPO, wait_for
 from uav_vs.graph import executable
 from uav_vs.ros.convert import image_to_bgr, msg_to_pose, stamp_to_ns, yaw_of
 from uav_vs.flight.scenario import free_port
-from uav_vs.vision.ground_config import read_params_file
+from uav_vs.sim.ground_scene import rot_z
+from uav_vs.vision.colour_model import models_from_params
+from uav_vs.vision.ground_config import load_ground_config, read_params_file, read_params_files
+from uav_vs.vision.landmarks import LandmarkDetector, centroids
 
-FILES = ['--params-file', str(REPO / 'config' / 'ground_trinocular.yaml'),
+GROUND = REPO / 'config' / 'ground_trinocular.yaml'
+LANDMARKS_UAV2 = REPO / 'config' / 'landmarks_uav2.yaml'
+FILES = ['--params-file', str(GROUND),
          '--params-file', str(REPO / 'config' / 'onboard.yaml'),
          '--params-file', str(REPO / 'config' / 'sim_world.yaml')]
 
@@ -52,6 +57,41 @@ def test_publishes_ground_images_and_truth_of_the_vehicle_at_home(ros_node, proc
     np.testing.assert_allclose(position, 0.0, atol=1e-9)
     assert yaw_of(q) == pytest.approx(math.pi / 2)
     assert got['onboard'] == []            # on the ground, the onboard camera sees nothing
+
+
+def test_the_ground_cameras_see_another_vehicle_where_its_truth_says(ros_node, processes):
+    """A second vehicle, /uav2 (its own sim_world: home at `start` in world, no ground
+    cameras, its truth served as SIM_STATE), in the view of the first one's ground cameras
+    (fleet.names [uav2]): on cam2's image each vehicle's detector (its own colours) finds
+    all four of its landmarks within 1.5 px of where its truth projects them."""
+    truth_port, start = free_port(), [0.8, 1.0]
+    processes('sim_world', [*FILES, '-r', '__ns:=/uav2', '-p', 'vehicle.system_id:=2',
+                            '-p', f'vehicle.connection:=tcpin:127.0.0.1:{free_port()}',
+                            '-p', f'vehicle.truth_connection:=tcpin:127.0.0.1:{truth_port}',
+                            '-p', f'vehicle.start:={start}', '-p', 'ground.rate:=0.0'],
+              label='uav2')
+    truths: dict[str, list] = {'/truth/pose': [], '/uav2/truth/pose': []}
+    for topic, got in truths.items():
+        ros_node.create_subscription(PoseStamped, topic, got.append, 50)
+    assert wait_for(lambda: truths['/uav2/truth/pose'], 60)
+    images = []
+    ros_node.create_subscription(Image, '/cam2/image_raw', images.append, qos_profile_sensor_data)
+    processes('sim_world', [*FILES, '-p', f'vehicle.connection:=tcpin:127.0.0.1:{free_port()}',
+                            '-p', 'fleet.names:=[uav2]', '-p', 'fleet.uav2.system_id:=2',
+                            '-p', f'fleet.uav2.truth_connection:=tcp:127.0.0.1:{truth_port}',
+                            '-p', f'fleet.uav2.start:={start}',
+                            '-p', f'fleet.uav2.landmarks:={LANDMARKS_UAV2}'], label='cameras')
+    assert wait_for(lambda: len(images) >= 3, 60)
+    image = image_to_bgr(images[-1], (640, 480))
+    for topic, files in (('/truth/pose', [GROUND]), ('/uav2/truth/pose', [GROUND, LANDMARKS_UAV2])):
+        params = read_params_files(files)
+        config = load_ground_config(params)
+        position, q = msg_to_pose(truths[topic][-1])
+        assert np.allclose(position, [*start, 0.0] if 'uav2' in topic else 0.0, atol=1e-6)
+        landmarks = config.layout @ rot_z(yaw_of(q)).T + position
+        found = centroids(LandmarkDetector(models_from_params(params)).detect(image))[0]
+        error = np.linalg.norm(found - config.cameras[1].project(landmarks), axis=1)
+        assert (error < 1.5).all(), (topic, error)
 
 
 def test_switched_on_effects_change_what_is_published(ros_node, processes):
@@ -156,6 +196,7 @@ def test_occlusion_covers_every_landmark_it_is_told_to(ros_node, processes):
     ('wind.gust_sigma:=-0.1', 'wind.gust_sigma: expected a number in [0, 5]'),
     ('unsynchronised.lag:=0.5', 'unsynchronised.lag: expected a number in [0, 0.1]'),
     ('occlusion.fraction:=1.5', 'occlusion.fraction: expected a number in [0, 1]'),
+    ('fleet.names:=[uav2]', 'fleet.uav2.truth_connection: missing'),
 ])
 def test_bad_parameter_stops_it_with_one_line(override, expected):
     run = subprocess.run([executable('sim_world'), '--ros-args', *FILES, '-p', override],

@@ -35,11 +35,19 @@ carried and the commands as the vehicle received them. `CUT_LINK=3` (`--cut-link
 cuts the link for 3 s once the vehicle holds: the relay stops the vehicle, the ground's
 link_monitor_node reports it, both go on when it returns.
 
+`make demo VEHICLES=2` (`--vehicles 2`) flies two simulated vehicles at once, /uav1 and
+/uav2 (uav_vs.flight.fleet): each its own autopilot (system ids 1 and 2), onboard camera,
+ground station tracking its own landmark colours in the shared ground cameras' images,
+controller and relay, each through its own hold and setpoint; the summary adds, per
+vehicle, what the ROS graph and its relay showed of crosstalk (none is expected). The
+output folder has a folder per vehicle.
+
 `make demo BAG=<bag>` (`--bag`) replays a bag instead (the flight bag a closed-loop run
 records into the output folder, or bags/ground_trinocular, bags/onboard) through the
 open-loop part of the graph (uav_vs.flight.replay) and reports the same way.
 """
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -49,6 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from uav_vs.bag.reader import BagError
+from uav_vs.flight.fleet import FLEET, FLEET_SCENARIOS, fly_fleet
 from uav_vs.flight.plots import plot_flight
 from uav_vs.flight.recorder import MissionError
 from uav_vs.flight.replay import commands_from_bag, replay_flight
@@ -99,6 +108,40 @@ def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
     return report(fly(scenario, out, Configs(sensors=profile), autopilot=autopilot, sitl=sitl,
                       startup_timeout=SITL_STARTUP_S if sitl else 90.0, hosts=hosts,
                       cut_link=cut_link), out)
+
+
+def fleet_closed_loop(out: Path, autopilot: str, sensors: str) -> int:
+    """Two vehicles at once (uav_vs.flight.fleet); a summary, plots and flight log per
+    vehicle in out/<name>, and the crosstalk counts in out/crosstalk.json."""
+    profile = default_config_path(f'sensors_{sensors}.yaml')
+    names = ', '.join(f'{m.name} (system id {m.system_id}, home {m.start})' for m in FLEET)
+    print(f'closed loop, {len(FLEET)} vehicles: {names}; {sensors} sensors ({profile.name}); '
+          f'per vehicle sim_world + ground_station + homography_pose_node + '
+          f'fuzzy_controller_node + mavlink_relay_node, and sim_cameras for the ground '
+          f'cameras (logs in {out}/<vehicle>/logs/)', flush=True)
+    run = fly_fleet(list(zip(FLEET, FLEET_SCENARIOS)), out, Configs(sensors=profile),
+                    autopilot=autopilot)
+    code = 0
+    counts = {}
+    for member, log, seen in zip(FLEET, run.logs, run.crosstalk):
+        print(f'--- {member.name}', flush=True)
+        code |= report(log, out / member.name)
+        counts[member.name] = dict(looks=seen.samples, count=seen.count,
+                                   foreign_publishers=sorted(seen.foreign_publishers),
+                                   foreign_subscribers=sorted(seen.foreign_subscribers),
+                                   wrong_system=seen.wrong_system)
+        print(f'{member.name} crosstalk: {seen.count} over {seen.samples} looks (cmd_vel '
+              f'publishers or subscribers outside /{member.name}: '
+              f'{len(seen.foreign_publishers) + len(seen.foreign_subscribers)}; relay reports '
+              f'of another system id: {seen.wrong_system})')
+    (out / 'crosstalk.json').write_text(json.dumps(counts, indent=1) + '\n')
+    print(f'CPU over the {run.run_s:.0f} s run: ' + ', '.join(
+        f'{name} {s:.0f} s ({s / run.run_s:.2f} of a core)' for name, s in run.cpu_s.items())
+        + ' (sim_cameras: the simulated ground cameras, every vehicle drawn)')
+    failed = {label: rc for label, rc in run.exit_codes.items() if rc}
+    if failed:
+        print(f'shared processes failed: {failed} (logs in {out}/logs/)', file=sys.stderr)
+    return 1 if code or failed else 0
 
 
 def two_hosts_closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
@@ -217,6 +260,9 @@ def main(argv: list[str] | None = None) -> int:
                         help='2: the ground station and the vehicle on two hosts (network '
                         'namespaces, needs root) joined by a radio link of 20 +- 10 ms and '
                         '2 %% loss (default %(default)s)')
+    parser.add_argument('--vehicles', type=int, default=1, choices=(1, 2),
+                        help='2: two simulated vehicles, /uav1 and /uav2, each flying its own '
+                        'hold and setpoint in view of the same ground cameras')
     parser.add_argument('--cut-link', type=float, default=0.0, metavar='SECONDS',
                         help='with --hosts 2: cut the radio link for SECONDS once the '
                         'vehicle holds (default: never)')
@@ -235,11 +281,17 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f'--scenario {args.scenario} needs --autopilot ardupilot-sitl (an EKF '
                      'that navigates on the vision pose)')
     if args.autopilot == 'ardupilot-sitl':
-        if args.hosts == 2:
-            parser.error('--hosts 2 flies the simulated vehicle: --autopilot ardupilot or px4')
+        if args.hosts == 2 or args.vehicles == 2:
+            parser.error(f'--{"hosts" if args.hosts == 2 else "vehicles"} 2 flies the simulated '
+                         'vehicle: --autopilot ardupilot or px4')
         return sitl_closed_loop(args.scenario, out, args.sensors, args.sitl, args.sitl_truth)
     if args.cut_link and args.hosts != 2:
         parser.error('--cut-link cuts the radio link between two hosts: give --hosts 2')
+    if args.vehicles == 2:
+        if args.hosts == 2 or args.scenario != 'demo':
+            parser.error('--vehicles 2 flies its own two missions on one host: no --hosts, '
+                         'no --scenario')
+        return fleet_closed_loop(out, args.autopilot, args.sensors)
     if args.hosts == 2:
         return two_hosts_closed_loop(args.scenario, out, args.autopilot, args.sensors,
                                      args.cut_link)

@@ -33,10 +33,18 @@ class FlightRecorder:
     """A mission's ROS side: records every pose source, the commands, the frame stamps
     and the relay's status; publishes the setpoint (re-sent at 2 Hz); calls services."""
 
-    def __init__(self, first_camera: str) -> None:
+    def __init__(self, first_camera: str, namespace: str = '',
+                 home: tuple[float, float] = (0.0, 0.0)) -> None:
+        """`namespace`: the vehicle's (/uav1), where its topics, services and nodes are;
+        the ground cameras' stay at the root, shared by every vehicle. `home`: where the
+        vehicle's autopilot has its local origin in world (x, y, m), which places its
+        autopilot/odom (in that local frame) in world."""
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
-        self.node = rclpy.create_node('scenario_runner', context=self.context)
+        self.ns = namespace
+        self.home = np.array([home[0], home[1], 0.0])
+        self.node = rclpy.create_node('scenario_runner', namespace=namespace or None,
+                                      context=self.context)
         self.rows: dict[str, list] = {k: [] for k in ('truth', 'ground', 'onboard', 'odom',
                                                       'target_truth', 'target', 'commands',
                                                       'ground_frames', 'onboard_frames')}
@@ -52,7 +60,7 @@ class FlightRecorder:
             node.create_subscription(PoseStamped, topic, lambda m, n=name: self._on_pose(n, m), 100)
         node.create_subscription(Odometry, 'autopilot/odom', self._on_odom, 100)
         node.create_subscription(TwistStamped, 'cmd_vel', self._on_cmd_vel, 100)
-        for name, topic in (('ground_frames', f'{first_camera}/camera_info'),
+        for name, topic in (('ground_frames', f'/{first_camera}/camera_info'),
                             ('onboard_frames', 'onboard/camera_info')):
             node.create_subscription(CameraInfo, topic, lambda m, n=name: self.rows[n].append(
                 stamp_to_ns(m.header.stamp)), 100)
@@ -85,8 +93,8 @@ class FlightRecorder:
             position, q, _, _ = msg_to_odometry(msg)
         except MessageError:
             return
-        self.rows['odom'].append((stamp_to_ns(msg.header.stamp), time.time_ns(), *position,
-                                  yaw_of(q)))
+        self.rows['odom'].append((stamp_to_ns(msg.header.stamp), time.time_ns(),
+                                  *(position + self.home), yaw_of(q)))
 
     def _on_cmd_vel(self, msg: TwistStamped) -> None:
         linear, angular = msg_to_twist(msg)
@@ -97,7 +105,7 @@ class FlightRecorder:
         for status in msg.status:
             self.reporting.add(status.name)
             self.messages[status.name] = status.message
-            if status.name == RELAY:
+            if status.name == self.ns + RELAY:
                 self.relay = {kv.key: kv.value for kv in status.values}
                 if self.relay.get('ekf_flags'):
                     self.ekf.append(ekf_row(self.relay))
@@ -117,10 +125,10 @@ class FlightRecorder:
             self.setpoint_pub.publish(self.setpoint)
 
     def subscriptions(self, node_name: str) -> tuple[str, ...]:
-        """The topics a node of the graph subscribes to, as the ROS graph reports them
-        (none while the node is not discovered)."""
+        """The topics a node of the vehicle's graph subscribes to, as the ROS graph reports
+        them (none while the node is not discovered)."""
         try:
-            found = self.node.get_subscriber_names_and_types_by_node(node_name, '/')
+            found = self.node.get_subscriber_names_and_types_by_node(node_name, self.ns or '/')
         except NodeNameNonExistentError:
             return ()
         return tuple(sorted(name for name, _ in found))

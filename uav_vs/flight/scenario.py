@@ -31,6 +31,7 @@ import subprocess
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from std_srvs.srv import SetBool, Trigger
@@ -138,6 +139,18 @@ class Configs:
 
 
 @dataclass(frozen=True)
+class Member:
+    """One vehicle of several in the same world and ground cameras (uav_vs.flight.fleet):
+    its namespace (/name), MAVLink system id, home in world (x, y, m) and a params file
+    of its landmark colours, given after Configs.ground (None: Configs.ground's own)."""
+
+    name: str
+    system_id: int
+    start: tuple[float, float]
+    landmarks: Path | None = None
+
+
+@dataclass(frozen=True)
 class SitlLink:
     """An ArduPilot SITL flying the vehicle: the relay's MAVLink port, and another one
     where sim_world reads the SIM_STATE truth (uav_vs.sim.sitl_truth)."""
@@ -206,9 +219,15 @@ class _Mission:
 
     def __init__(self, scenario: Scenario, log_dir: Path, configs: Configs,
                  bag: Path | None, autopilot: str, sitl: SitlLink | None,
-                 hosts: TwoHosts | None, cut_link: float) -> None:
+                 hosts: TwoHosts | None, cut_link: float, member: Member | None = None,
+                 truth_port: int = 0, ready: Callable[[], None] | None = None) -> None:
+        """With `member`, one vehicle of a fleet (uav_vs.flight.fleet): its sim_world serves
+        its truth on `truth_port`, and `ready()` returns once every vehicle's world is up
+        and the ground cameras render them (MissionError if they never do)."""
         self.scenario, self.log_dir, self.configs, self.bag = scenario, log_dir, configs, bag
         self.autopilot, self.sitl, self.hosts, self.cut_link = autopilot, sitl, hosts, cut_link
+        self.member, self.truth_port, self.ready = member, truth_port, ready
+        self.ns = f'/{member.name}' if member else ''     # the vehicle's namespace
         self.procs: dict[str, subprocess.Popen] = {}      # running
         self.retired: list[tuple[str, subprocess.Popen]] = []   # stopped on purpose
         self.controller_source = ''
@@ -216,11 +235,12 @@ class _Mission:
                                  else None)
 
     def run(self, startup_timeout: float) -> FlightLog:
-        cameras = list(read_params_file(self.configs.ground)['cameras.names'])
-        self.rec = FlightRecorder(cameras[0])
+        self.cameras = list(read_params_file(self.configs.ground)['cameras.names'])
+        self.rec = FlightRecorder(self.cameras[0], self.ns,
+                                  self.member.start if self.member else (0.0, 0.0))
         start = time.monotonic()
         try:
-            self._start_graph(cameras, startup_timeout)
+            self._start_graph(self.cameras, startup_timeout)
             self._fly(startup_timeout)
         except MissionError as err:
             self.events['failure'] = str(err)
@@ -246,15 +266,42 @@ class _Mission:
         wrap, env = (), None
         if on_vehicle and self.hosts is not None:
             wrap, env = self.hosts.exec('air'), self.hosts.ros_env('air')
+        if self.ns:
+            ros_args = [*ros_args, '-r', f'__ns:={self.ns}']
         self.procs[label] = graph.start(name, ros_args, self.log_dir, log_name or label,
                                         env=env, args=args, wrap=wrap)
         self.procs[label].host = 'air' if wrap else 'ground'
+
+    def _world_args(self) -> list[str]:
+        c = self.configs
+        return ['--params-file', str(c.world_ground or c.ground), '--params-file', str(c.onboard),
+                '--params-file', str(c.world),
+                *(['--params-file', str(c.sensors)] if c.sensors else [])]
+
+    def _start_member_world(self, timeout: float) -> str:
+        """The member vehicle's sim_world in its namespace: the vehicle (home at its start,
+        its system id), its onboard camera, no ground cameras (the fleet's sim_cameras
+        draws every vehicle), its truth served as SIM_STATE; once every vehicle's is up
+        and the ground cameras run (ready), the relay's connection to it."""
+        port, m = free_port(), self.member
+        self._start('sim_world', 'sim_world', [
+            *self._world_args(), '-p', f'vehicle.connection:=tcpin:127.0.0.1:{port}',
+            '-p', f'vehicle.autopilot:={self.autopilot}', '-p', f'vehicle.system_id:={m.system_id}',
+            '-p', f'vehicle.start:=[{m.start[0]:.3f}, {m.start[1]:.3f}]',
+            '-p', f'vehicle.truth_connection:=tcpin:127.0.0.1:{self.truth_port}',
+            '-p', 'ground.rate:=0.0', '-p', f'world.seed:={m.system_id}'])
+        self._wait(f'{self.ns}/sim_world', lambda: f'{self.ns}/sim_world' in self.rec.reporting,
+                   timeout)
+        self.ready()
+        return f'tcp:127.0.0.1:{port}'
 
     def _start_graph(self, cameras: list[str], timeout: float) -> None:
         """The recorder, then everything but the onboard pose node; the relay once the
         vehicle serves."""
         c = self.configs
-        if self.sitl is None:
+        if self.member is not None:
+            vehicle, relay = [], self._start_member_world(timeout)
+        elif self.sitl is None:
             port = free_port()
             vehicle = ['-p', f'vehicle.connection:=tcpin:127.0.0.1:{port}',
                        '-p', f'vehicle.autopilot:={self.autopilot}']
@@ -269,13 +316,11 @@ class _Mission:
             if self.hosts is not None:     # the commands as the vehicle receives them
                 self._start('bag_record_vehicle', 'bag_record', [], args=[
                     '-o', str(vehicle_bag(self.bag.parent)), 'cmd_vel'], on_vehicle=True)
-        world = ['--params-file', str(c.world_ground or c.ground), '--params-file', str(c.onboard),
-                 '--params-file', str(c.world),
-                 *(['--params-file', str(c.sensors)] if c.sensors else [])]
+        world = self._world_args()
         target = ['-p', 'ground_target.enabled:=true'] if self.scenario.follow else []
-        if self.hosts is None:
+        if self.hosts is None and self.member is None:
             self._start('sim_world', 'sim_world', [*world, *vehicle, *target])
-        else:
+        elif self.hosts is not None:
             # The vehicle and its camera fly; the ground cameras are rendered on the ground
             # from the truth the vehicle serves on the world's wire (radio_link).
             truth = f'{self.hosts.world_address("air")}:{TRUTH_PORT}'
@@ -287,14 +332,15 @@ class _Mission:
             self._start('sim_cameras', 'sim_world', [
                 *world, '-r', '__node:=sim_cameras', '-p', 'vehicle.model:=sitl',
                 '-p', f'vehicle.sitl_connection:=tcp:{truth}', '-p', 'onboard.rate:=0.0'])
-        self.procs.update(ground_graph(c.ground, cameras, self.log_dir, layout=c.ground_layout))
+        self.procs.update(ground_graph(c.ground, cameras, self.log_dir, self._station_args(),
+                                       layout=c.ground_layout))
         if self.hosts is not None:
             self._start('link_monitor_node', 'link_monitor_node', [
                 '--params-file', str(default_config_path('link_monitor.yaml'))])
         self._start_controller('ground')
         for sim in ('sim_world', 'sim_cameras'):
             if sim in self.procs:
-                self._wait(sim, lambda: f'/{sim}' in self.rec.reporting, timeout)
+                self._wait(sim, lambda: f'{self.ns}/{sim}' in self.rec.reporting, timeout)
         if self.scenario.gps_denied:
             if self.sitl is None:
                 raise MissionError(f'{self.scenario.name} needs an autopilot with an EKF: '
@@ -304,11 +350,24 @@ class _Mission:
                           '-p', f'ekf_origin:=[{lat:.7f}, {lon:.7f}, {alt:.2f}]']
         else:
             relay_args = []
+        if self.member is not None:
+            relay_args.extend(['-p', f'target_system:={self.member.system_id}'])
         self._start('mavlink_relay_node', 'mavlink_relay_node', [
             '--params-file', str(c.relay), '-p', f'connection:={relay}',
             '-p', 'allow_arming:=true',
             '-p', f'takeoff_height:={self.scenario.takeoff_height:.3f}', *relay_args],
             on_vehicle=True)
+
+    def _station_args(self) -> list[str]:
+        """A member's ground station: its landmarks over the rig's, in its namespace, on
+        the shared cameras' images (/camK/image_raw)."""
+        if self.member is None:
+            return []
+        remaps = [a for cam in self.cameras for topic in ('image_raw', 'image_raw/compressed')
+                  for a in ('-r', f'{self.ns}/{cam}/{topic}:=/{cam}/{topic}')]
+        landmarks = self.member.landmarks
+        return [*(['--params-file', str(landmarks)] if landmarks else []),
+                '-r', f'__ns:={self.ns}', *remaps]
 
     def _start_controller(self, source: str) -> None:
         """(Re)start fuzzy_controller_node flying on `source`'s pose (ground or onboard)."""
@@ -389,7 +448,7 @@ class _Mission:
 
     def _enable_controller(self, on: bool = True) -> None:
         """Enable (disable) the controller once the ROS graph shows it on its pose input."""
-        topic = f'/{self.controller_source}/pose'
+        topic = f'{self.ns}/{self.controller_source}/pose'
         self._wait(f'fuzzy_controller_node on {topic}',
                    lambda: topic in self.rec.subscriptions('fuzzy_controller_node'), 30.0)
         self.rec.call(SetBool, 'controller/enable', SetBool.Request(data=on), 5.0,

@@ -28,6 +28,12 @@ calibration error (the cameras render from a rig a little off the calibration
 camera_info carries) and, for the builtin vehicle, wind gusts and the drift of its
 estimate are each switched by their own parameter group; by default only the noise and
 the calibrated distortion are on.
+Several vehicles share one world: each vehicle's sim_world (or SITL) has its home at
+`vehicle.start` in `world`, and serves its truth on `vehicle.truth_connection`; the
+sim_world that renders the ground cameras reads the others' (`fleet.names`, each with
+`fleet.<name>.truth_connection`, `.system_id`, `.start` and `.landmarks`, a params file
+of its landmark colours such as config/landmarks_uav2.yaml), draws them all and publishes
+each one's truth at the ground frames' instants on `<name>/truth/pose`.
 Every parameter is read-only: the world, its vehicle and cameras are built at start-up.
 """
 import math
@@ -37,6 +43,7 @@ from typing import Callable
 
 import cv2
 import numpy as np
+import yaml
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
@@ -61,8 +68,8 @@ from uav_vs.sim.mavlink_vehicle import CUSTOM_MODES, MavlinkVehicle, VehicleConf
 from uav_vs.sim.onboard_scene import OnboardScene
 from uav_vs.sim.sitl_truth import SitlTruth
 from uav_vs.sim.world import SimulatedVehicle, SimWorld, Vehicle, VehicleState
-from uav_vs.vision.camera import Camera
-from uav_vs.vision.ground_config import GroundConfig, load_ground_config
+from uav_vs.vision.camera import CalibrationError, Camera
+from uav_vs.vision.ground_config import GroundConfig, load_ground_config, read_params_file
 from uav_vs.vision.onboard_config import OnboardConfig, load_onboard_config
 
 _V = VehicleConfig()
@@ -90,6 +97,9 @@ PARAMS = [
           10.0, 1000.0),
     Param('vehicle.ready_delay', T.DOUBLE, _V.ready_delay,
           'builtin: seconds after start before the vehicle can arm (estimator ready)', 0.0, 600.0),
+    Param('vehicle.start', T.DOUBLE_ARRAY, [0.0, 0.0],
+          "where the vehicle's home (its autopilot's local origin, where it stands at boot) "
+          'is in world: x y, m', size=2),
     Param('wind.enabled', T.BOOL, False, 'builtin: horizontal wind gusts the velocity loop has '
           'not yet rejected push the vehicle'),
     Param('wind.gust_sigma', T.DOUBLE, 0.05, 'builtin: spread of the gust velocity per axis, m/s',
@@ -177,6 +187,38 @@ PARAMS = [
 ]
 
 
+def declare_fleet(node: Node) -> dict[str, dict]:
+    """Declare `fleet.*`, the other vehicles the ground cameras see; per name, its
+    parameters without the `fleet.<name>.` prefix."""
+    names = declare(node, [Param('fleet.names', T.STRING_ARRAY, [], (
+        "other vehicles in the ground cameras' view, each with its fleet.<name>.*"))])
+    fleet = {}
+    for name in names['fleet.names']:
+        key = f'fleet.{name}.'
+        values = declare(node, [
+            Param(key + 'truth_connection', T.STRING, description=(
+                'where its true state is read as SIM_STATE (its sim_world\'s '
+                'vehicle.truth_connection, or a SITL port): tcp:HOST:PORT or udpin:HOST:PORT')),
+            Param(key + 'system_id', T.INTEGER, 1, 'its MAVLink system id', 1, 255),
+            Param(key + 'start', T.DOUBLE_ARRAY, [0.0, 0.0],
+                  'where its home is in world: x y, m', size=2),
+            Param(key + 'landmarks', T.STRING, description=(
+                'a params file with its landmarks.* (config/landmarks_uav2.yaml)'))])
+        fleet[name] = {k[len(key):]: v for k, v in values.items()}
+    return fleet
+
+
+def fleet_landmarks(cameras: dict, params_file: str, key: str) -> GroundConfig:
+    """The cameras' flat parameters with the landmarks of `params_file` (its
+    `landmarks.*`); `key` names the parameter that gave the file."""
+    try:
+        landmarks = {k: v for k, v in read_params_file(params_file).items()
+                     if k.startswith('landmarks.')}
+        return load_ground_config({**cameras, **landmarks})
+    except (OSError, yaml.YAMLError, CalibrationError) as err:
+        raise ValueError(f'{key}: {params_file}: {err}') from None
+
+
 def effects_config(p: dict, noise_sigma: float) -> EffectsConfig:
     """The image effects the parameters switch on, for a camera of `noise_sigma`."""
     return EffectsConfig(
@@ -232,10 +274,14 @@ class CameraOutput:
 class SimWorldNode(Node):
     def __init__(self) -> None:
         super().__init__('sim_world')
-        ground = load_ground_config({**declare_cameras(self), **declare_landmarks(self)})
+        cameras = declare_cameras(self)
+        ground = load_ground_config({**cameras, **declare_landmarks(self)})
         onboard = load_onboard_config(declare(self, [s for s in ONBOARD_PARAMS
                                                      if s.name.startswith('camera')]))
         p = declare(self, PARAMS)
+        fleet = declare_fleet(self)
+        others = [fleet_landmarks(cameras, f['landmarks'], f'fleet.{name}.landmarks')
+                  for name, f in fleet.items()]
         self.frame_id = p['world.frame_id']
         if not p['distortion.enabled']:
             ground = replace(ground, cameras=[ideal_lens(c) for c in ground.cameras])
@@ -245,7 +291,8 @@ class SimWorldNode(Node):
             ground, onboard = true_rig(ground, onboard, p)
         try:
             ground_scene = GroundScene(ground, background=p['ground.background'],
-                                       noise_sigma=0.0, seed=p['world.seed'])
+                                       noise_sigma=0.0, seed=p['world.seed'],
+                                       others=others)
         except FileNotFoundError as err:
             raise ValueError(f'ground.background: {err}') from None
         onboard_scene = OnboardScene(onboard.camera, onboard.camera_to_body, noise_sigma=0.0)
@@ -277,14 +324,18 @@ class SimWorldNode(Node):
         self.dt = {'ground': 1.0 / p['ground.rate'] if p['ground.rate'] > 0 else 0.0,
                    'onboard': 1.0 / p['onboard.rate'] if p['onboard.rate'] > 0 else 0.0}
         vehicle, where = self._vehicle(p)
+        flying = [self._truth(f'fleet.{name}.truth_connection', f['truth_connection'],
+                              f['system_id'], f['start']) for name, f in fleet.items()]
         self.world = SimWorld(vehicle, ground_scene, onboard_scene, p['onboard.min_height'],
-                              self._target(p))
+                              self._target(p), others=flying)
 
         quality = p['world.jpeg_quality']
         self.cameras = [CameraOutput(self, cam.name, cam, quality)
                         for cam in nominal_ground.cameras]
         self.onboard_camera = CameraOutput(self, 'onboard', nominal_onboard.camera, quality)
         self.truth_pub = self.create_publisher(PoseStamped, 'truth/pose', 50)
+        self.fleet_truth_pubs = [self.create_publisher(PoseStamped, f'{name}/truth/pose', 50)
+                                 for name in fleet]
         self.target_truth_pub = self.create_publisher(PoseStamped, 'truth/target', 50)
         self.counts = dict(ground_frames=0, onboard_frames=0, onboard_too_low=0,
                            dropped_frames=0, occluded_landmarks=0)
@@ -315,12 +366,8 @@ class SimWorldNode(Node):
         """The world's vehicle, started, and where it is."""
         if p['vehicle.model'] == 'sitl':
             url = p['vehicle.sitl_connection']
-            try:
-                truth = SitlTruth(url, target_system=p['vehicle.system_id']).start()
-                truth.wait(SITL_WAIT_S)
-            except (OSError, TimeoutError) as err:
-                raise ValueError(f'vehicle.sitl_connection: {url}: '
-                                 f'{getattr(err, "strerror", None) or err}') from None
+            truth = SimWorldNode._truth('vehicle.sitl_connection', url, p['vehicle.system_id'],
+                                        p['vehicle.start'])
             return truth, f'ArduPilot SITL, truth from SIM_STATE on {url}'
         try:
             vehicle = MavlinkVehicle(VehicleConfig(
@@ -336,8 +383,16 @@ class SimWorldNode(Node):
             raise ValueError(f"{' or '.join(n for n in names if p[n])}: cannot serve "
                              f'{err.strerror or err}') from None
         host, port = vehicle.address
-        return (SimulatedVehicle(vehicle.start()),
+        return (SimulatedVehicle(vehicle.start(), p['vehicle.start']),
                 f'simulated {p["vehicle.autopilot"]} on {p["vehicle.connection"]} ({host}:{port})')
+
+    @staticmethod
+    def _truth(key: str, url: str, system_id: int, start: list[float]) -> SitlTruth:
+        """A vehicle's SIM_STATE truth read from `url` (the parameter `key`), once it came."""
+        try:
+            return SitlTruth(url, target_system=system_id, start=start).start().wait(SITL_WAIT_S)
+        except (OSError, TimeoutError) as err:
+            raise ValueError(f'{key}: {url}: {getattr(err, "strerror", None) or err}') from None
 
     def _sample(self) -> tuple[VehicleState, Header]:
         """The vehicle's truth now, published on truth/pose, and the stamp of that instant."""
@@ -371,12 +426,15 @@ class SimWorldNode(Node):
 
     def on_ground(self) -> None:
         state, header = self._sample()
+        others = self.world.other_states()
+        for pub, other in zip(self.fleet_truth_pubs, others):
+            pub.publish(pose_to_msg(other.position, other.quaternion, header))
         start = time.perf_counter()
         lags = None if self.lags is None else self.lags.sample()
-        images = self.world.ground_images(state, lags)
+        images = self.world.ground_images(state, lags, others)
         if self.occlusion is not None:
             images = [self._occlude(image, discs) for image, discs in
-                      zip(images, self.world.ground_landmark_discs(state, lags))]
+                      zip(images, self.world.ground_landmark_discs(state, lags, others))]
         velocities = self.world.ground_image_velocities(state)
         frames = [self._capture(fx, image, v, 'ground')
                   for fx, image, v in zip(self.ground_effects, images, velocities)]

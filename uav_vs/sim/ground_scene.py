@@ -12,6 +12,8 @@ lens distortion), so the ground truth is exact:
   pixel are composited, shaded with a Lambertian term plus ambient light (no specular,
   so a landmark keeps its hue);
   silhouette edges are anti-aliased from the ray's distance to the surface;
+- several vehicles, each with its own landmark colours, share the view (`render_fleet`):
+  each camera draws them farthest first, so a nearer one hides a farther one;
 - global lighting drifts slowly (gain and sun direction), and Gaussian sensor noise is
   added (uav_vs.sim.camera_effects.GaussianNoise).
 
@@ -102,25 +104,33 @@ def vehicle_parts(config: GroundConfig) -> list[Ellipsoid]:
     return parts
 
 
+class Body:
+    """One vehicle's parts as arrays (base_link, m): centres, semi-axes and BGR albedo
+    (0..255); the first `n_landmarks` parts are its landmark spheres."""
+
+    def __init__(self, config: GroundConfig) -> None:
+        parts = vehicle_parts(config)
+        self.n_landmarks = len(config.landmark_names)
+        self.centres = np.stack([p.centre for p in parts])
+        self.axes = np.stack([p.axes for p in parts])
+        self.albedo = np.stack([p.albedo for p in parts]) * 255.0
+        self.reach = float(np.max(np.linalg.norm(self.centres, axis=1) + self.axes.max(1)))
+
+
 class GroundScene:
-    """Renders the configured cameras' images of the vehicle at a given pose."""
+    """Renders the configured cameras' images of the vehicle at a given pose; with
+    `others`, the landmark sets of further vehicles in the same view (config's cameras)."""
 
     def __init__(self, config: GroundConfig, background: str = 'aero1.jpg',
                  ground_size: float = 30.0, noise_sigma: float = 2.0, ambient: float = 0.4,
-                 seed: int = 0):
+                 seed: int = 0, others: Sequence[GroundConfig] = ()):
         self.cameras = config.cameras
-        self.parts = vehicle_parts(config)
-        self.n_landmarks = len(config.landmark_names)
+        self.bodies = [Body(c) for c in (config, *others)]
+        self.n_landmarks = self.bodies[0].n_landmarks
         self.ambient = ambient
-        self._centres = np.stack([p.centre for p in self.parts])
-        self._axes = np.stack([p.axes for p in self.parts])
-        self._albedo = np.stack([p.albedo for p in self.parts]) * 255.0
-        self._reach = float(np.max(np.linalg.norm(self._centres, axis=1) + self._axes.max(1)))
         self._rays = [_pixel_rays(c) for c in self.cameras]
         self._ray_products = [np.concatenate([r * r, r[[0, 0, 1]] * r[[1, 2, 2]]])
                               for r in self._rays]
-        # px per unit of scaled distance at 1 m: the thinnest semi-axis times the focal length
-        self._edge_scale = [self._axes.min(1) * c.K[0, 0] for c in self.cameras]
         texture = cv2.imread(str(ASSETS / background), cv2.IMREAD_COLOR)
         if texture is None:
             raise FileNotFoundError(f'cannot read {ASSETS / background}')
@@ -141,36 +151,55 @@ class GroundScene:
     def render(self, pose: Pose | Sequence[Pose]) -> tuple[list[np.ndarray], RenderInfo]:
         """BGR uint8 images, one per camera, and the landmarks' visibility at this pose
         (or at each camera's own pose: cameras that capture at different instants)."""
-        poses = [pose] * len(self.cameras) if isinstance(pose, Pose) else list(pose)
-        if len(poses) != len(self.cameras):
-            raise ValueError(f'{len(poses)} poses for {len(self.cameras)} cameras')
-        shape = (len(self.cameras), self.n_landmarks)
-        info = RenderInfo(np.zeros(shape), np.full(shape + (2,), np.nan),
-                          np.full(shape + (2,), np.nan))
-        images = []
-        for k, at in enumerate(poses):
-            gain, sun = self.lighting(at.t)
-            img = cv2.convertScaleAbs(self._background[k], alpha=gain)
-            self._draw_vehicle(k, img, at, gain, sun, info)
-            images.append(self._noise(img))
+        images, (info,) = self.render_fleet([pose])
         return images, info
 
-    def landmark_discs(self, pose: Pose | Sequence[Pose]) -> np.ndarray:
+    def render_fleet(self, poses: Sequence[Pose | Sequence[Pose]]
+                     ) -> tuple[list[np.ndarray], list[RenderInfo]]:
+        """The images of every vehicle the scene has, each at its pose (or its pose per
+        camera), and each one's RenderInfo. A vehicle's visibility counts its own parts
+        as occluders, not the other vehicles'."""
+        if len(poses) != len(self.bodies):
+            raise ValueError(f'{len(poses)} poses for {len(self.bodies)} vehicles')
+        per_camera = [self._per_camera(p) for p in poses]
+        infos = []
+        for body in self.bodies:
+            shape = (len(self.cameras), body.n_landmarks)
+            infos.append(RenderInfo(np.zeros(shape), np.full(shape + (2,), np.nan),
+                                    np.full(shape + (2,), np.nan)))
+        images = []
+        for k, cam in enumerate(self.cameras):
+            gain, sun = self.lighting(per_camera[0][k].t)
+            img = cv2.convertScaleAbs(self._background[k], alpha=gain)
+            depth = [cam.to_camera(p[k].position[None])[0, 2] for p in per_camera]
+            for v in np.argsort(depth)[::-1]:               # the farthest first
+                self._draw_vehicle(k, img, per_camera[v][k], self.bodies[v], gain, sun, infos[v])
+            images.append(self._noise(img))
+        return images, infos
+
+    def landmark_discs(self, pose: Pose | Sequence[Pose], vehicle: int = 0) -> np.ndarray:
         """(n_cams, n_landmarks, 3): each landmark's image centre (u, v) and radius (px,
         from the focal length over its depth) in each camera at `pose` (or at each
-        camera's own pose); NaN behind a camera."""
-        poses = [pose] * len(self.cameras) if isinstance(pose, Pose) else list(pose)
-        out = np.full((len(self.cameras), self.n_landmarks, 3), np.nan)
-        for k, (cam, at) in enumerate(zip(self.cameras, poses)):
-            centres = self._centres[:self.n_landmarks] @ at.R.T + at.position
+        camera's own pose); NaN behind a camera. `vehicle`: whose landmarks."""
+        body = self.bodies[vehicle]
+        n = body.n_landmarks
+        out = np.full((len(self.cameras), n, 3), np.nan)
+        for k, (cam, at) in enumerate(zip(self.cameras, self._per_camera(pose))):
+            centres = body.centres[:n] @ at.R.T + at.position
             depth = cam.to_camera(centres)[:, 2]
             ahead = depth > 0
             out[k, ahead, :2] = cam.project(centres[ahead])
-            out[k, ahead, 2] = cam.K[0, 0] * self._axes[:self.n_landmarks, 0][ahead] / depth[ahead]
+            out[k, ahead, 2] = cam.K[0, 0] * body.axes[:n, 0][ahead] / depth[ahead]
         return out
 
-    def _draw_vehicle(self, k: int, img: np.ndarray, pose: Pose, gain: float, sun: np.ndarray,
-                      info: RenderInfo) -> None:
+    def _per_camera(self, pose: Pose | Sequence[Pose]) -> list[Pose]:
+        poses = [pose] * len(self.cameras) if isinstance(pose, Pose) else list(pose)
+        if len(poses) != len(self.cameras):
+            raise ValueError(f'{len(poses)} poses for {len(self.cameras)} cameras')
+        return poses
+
+    def _draw_vehicle(self, k: int, img: np.ndarray, pose: Pose, body: Body, gain: float,
+                      sun: np.ndarray, info: RenderInfo) -> None:
         """Ray-cast every part inside the vehicle's image window and composite the two
         nearest surfaces of each pixel over the background.
 
@@ -179,15 +208,15 @@ class GroundScene:
         quadratic forms in d are products with the precomputed ray products.
         """
         cam = self.cameras[k]
-        win = _window(cam, pose.position, 1.1 * self._reach)
+        win = _window(cam, pose.position, 1.1 * body.reach)
         if win is None:
             return
         y0, y1, x0, x1 = win
         d = self._rays[k][:, y0:y1, x0:x1].reshape(3, -1)
         dd = self._ray_products[k][:, y0:y1, x0:x1].reshape(6, -1)
-        C = (self._centres @ pose.R.T + pose.position) @ cam.R.T + cam.t      # (m, 3)
+        C = (body.centres @ pose.R.T + pose.position) @ cam.R.T + cam.t       # (m, 3)
         Q = cam.R @ pose.R
-        G = np.einsum('ij,mj,kj->mik', Q, 1.0 / self._axes ** 2, Q)          # (m, 3, 3)
+        G = np.einsum('ij,mj,kj->mik', Q, 1.0 / body.axes ** 2, Q)           # (m, 3, 3)
         GC = np.einsum('mij,mj->mi', G, C)
         cc = np.einsum('mi,mi->m', C, GC)[:, None].astype(np.float32)
         inv_a = 1.0 / (_sym6(G).astype(np.float32) @ dd)                     # 1 / d^T G d
@@ -195,8 +224,9 @@ class GroundScene:
         s0 = b * inv_a                                   # closest approach to the centre
         rho2 = cc - b * s0                               # its scaled distance^2 (1 = surface)
         s = s0 - np.sqrt(np.maximum(1.0 - rho2, 0.0) * inv_a)   # first hit (s0 on a miss)
+        # px per unit of scaled distance: the thinnest semi-axis times the focal length
         edge_px = (np.sqrt(np.maximum(rho2, 0.0)) - 1.0) * \
-            (self._edge_scale[k] / np.linalg.norm(C, axis=1)).astype(np.float32)[:, None]
+            (body.axes.min(1) * cam.K[0, 0] / np.linalg.norm(C, axis=1)).astype(np.float32)[:, None]
         alpha = np.clip(0.5 - edge_px, 0.0, 1.0)
         rows = np.flatnonzero(alpha.max(axis=0) > 0)
         if rows.size == 0:
@@ -220,8 +250,8 @@ class GroundScene:
         depth2[i1, r] = np.inf
         i2 = np.argmin(depth2, axis=0)
         a1, a2 = alpha[i1, r][:, None], alpha[i2, r][:, None]
-        c1 = shade[i1, r][:, None] * self._albedo[i1]
-        c2 = shade[i2, r][:, None] * self._albedo[i2]
+        c1 = shade[i1, r][:, None] * body.albedo[i1]
+        c2 = shade[i2, r][:, None] * body.albedo[i2]
         patch = img[y0:y1, x0:x1].reshape(-1, 3)
         out = a1 * c1 + (1.0 - a1) * (a2 * c2 + (1.0 - a2) * patch[rows])
         patch[rows] = np.clip(out + 0.5, 0, 255).astype(np.uint8)
@@ -229,7 +259,7 @@ class GroundScene:
 
         w = x1 - x0
         xy = np.column_stack([x0 + rows % w, y0 + rows // w]).astype(np.float64)
-        for i in range(self.n_landmarks):
+        for i in range(body.n_landmarks):
             total = alpha[i].sum(dtype=np.float64)
             if total == 0:
                 continue

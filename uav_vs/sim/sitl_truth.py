@@ -6,7 +6,8 @@ from the EKF. SitlTruth reads it, with HEARTBEAT (mode, armed) and EXTENDED_SYS_
 (landed or in the air), on a MAVLink port of its own (SITL's SERIAL1 or SERIAL2; the
 relay keeps SERIAL0), and gives the world's VehicleState: base_link (FLU) in `world`
 (ENU) whose origin is where the vehicle stood when the first SIM_STATE came, on the
-ground, as the autopilot's home is.
+ground, as the autopilot's home is; or, for one of several vehicles, that home placed at
+`start` (x, y) in world.
 
 SIM_STATE carries no time stamp: a sample is dated when it is read, so the link must be
 local (SITL on this machine) and the SITL run at real time (speed-up 1) for the cameras'
@@ -15,6 +16,7 @@ stamps to mean the autopilot's time.
 import math
 import threading
 import time
+from collections.abc import Sequence
 
 import numpy as np
 from pymavlink import mavutil
@@ -35,7 +37,9 @@ _STALE_S = 1.0                 # no SIM_STATE for this long: the link is down
 class SitlTruth:
     """SIM_STATE truth read by a thread from `connection` (tcp:HOST:PORT or udpin:...)."""
 
-    def __init__(self, connection: str, target_system: int = 1, source_system: int = 253):
+    def __init__(self, connection: str, target_system: int = 1, source_system: int = 253,
+                 start: Sequence[float] = (0.0, 0.0)):
+        self._start = np.array([start[0], start[1], 0.0])
         self._conn = open_connection(connection, source_system=source_system,
                                      source_component=mavlink.MAV_COMP_ID_PATHPLANNER)
         self.connection, self.target = connection, target_system
@@ -120,7 +124,7 @@ class SitlTruth:
             self._origin = (lat, lon, msg.alt)
         ned = latlon_to_ned(lat, lon, msg.alt, self._origin)
         q = attitude_ned_to_enu(msg.roll, msg.pitch, msg.yaw)
-        state = VehicleState(now, ned_to_enu(ned), ned_to_enu([msg.vn, msg.ve, msg.vd]),
+        state = VehicleState(now, ned_to_enu(ned) + self._start, ned_to_enu([msg.vn, msg.ve, msg.vd]),
                              float(yaw_ned_to_enu(msg.yaw)), Rotation.from_quat(q).as_matrix(),
                              self._armed, self._mode, self._flying)
         with self._lock:

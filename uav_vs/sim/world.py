@@ -8,12 +8,18 @@ calibration (eq 16) and the onboard camera's ground plane z = 0 (section 4); the
 conversion is uav_vs.autopilot.frames. The MAVLink simulator has no attitude dynamics:
 it stays level, and base_link's attitude is its heading alone; SITL's vehicle tilts.
 
+Several vehicles can fly in one world: each autopilot's local frame has its origin where
+that vehicle stood at boot (its home), at `start` (x, y) in `world`, which each truth
+source adds. A SimWorld's `others` are further vehicles the ground cameras see beside its
+own, each with its own landmarks (GroundScene's `others`).
+
 `SimWorld` samples the vehicle's true state and renders the ground trinocular cameras
 (uav_vs.sim.ground_scene, section 3) and the down-looking onboard camera
 (uav_vs.sim.onboard_scene, section 4) at that state; the onboard camera also sees the
 moving ground target when the world has one (uav_vs.sim.ground_target, section 5),
 which starts its path when the world starts.
 """
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -49,10 +55,11 @@ class VehicleState:
         return quaternion_xyzw(self.R)
 
 
-def vehicle_state(truth: Truth) -> VehicleState:
-    """The simulator's NED truth as base_link in world (REP-103/105)."""
+def vehicle_state(truth: Truth, start: Sequence[float] = (0.0, 0.0)) -> VehicleState:
+    """The simulator's NED truth as base_link in world (REP-103/105), its home at `start`."""
     yaw = float(yaw_ned_to_enu(truth.yaw))
-    return VehicleState(truth.time, ned_to_enu(truth.position), ned_to_enu(truth.velocity), yaw,
+    position = ned_to_enu(truth.position) + [start[0], start[1], 0.0]
+    return VehicleState(truth.time, position, ned_to_enu(truth.velocity), yaw,
                         rot_z(yaw), truth.armed, truth.mode, truth.flying)
 
 
@@ -85,11 +92,11 @@ class Vehicle(Protocol):
 class SimulatedVehicle:
     """The MAVLink vehicle simulator as the world's vehicle."""
 
-    def __init__(self, vehicle: MavlinkVehicle) -> None:
-        self.vehicle = vehicle
+    def __init__(self, vehicle: MavlinkVehicle, start: Sequence[float] = (0.0, 0.0)) -> None:
+        self.vehicle, self.start = vehicle, tuple(start)
 
     def state(self) -> VehicleState:
-        return vehicle_state(self.vehicle.truth())
+        return vehicle_state(self.vehicle.truth(), self.start)
 
     def close(self) -> None:
         self.vehicle.stop()
@@ -99,8 +106,12 @@ class SimWorld:
     """The vehicle's true state and the ground and onboard cameras' views of it."""
 
     def __init__(self, vehicle: Vehicle, ground: GroundScene, onboard: OnboardScene,
-                 onboard_min_height: float, target: GroundTarget | None = None) -> None:
+                 onboard_min_height: float, target: GroundTarget | None = None,
+                 others: Sequence[Vehicle] = ()) -> None:
+        if len(ground.bodies) != 1 + len(others):
+            raise ValueError(f'{len(ground.bodies)} vehicles drawn for {1 + len(others)} flying')
         self.vehicle = vehicle
+        self.others = list(others)
         self.ground = ground
         self.onboard = onboard
         self.onboard_min_height = onboard_min_height
@@ -120,17 +131,27 @@ class SimWorld:
         return [Pose(t + dt, state.position + dt * state.velocity, state.yaw, state.R)
                 for dt in lags]
 
-    def ground_images(self, state: VehicleState, lags: np.ndarray | None = None
-                      ) -> list[np.ndarray]:
+    def other_states(self) -> list[VehicleState]:
+        """The other vehicles' truth now, in `others` order."""
+        return [o.state() for o in self.others]
+
+    def ground_images(self, state: VehicleState, lags: np.ndarray | None = None,
+                      others: Sequence[VehicleState] = ()) -> list[np.ndarray]:
         """One BGR image per ground camera, in `cameras.names` order (section 3), each
-        at its `ground_poses`."""
-        images, _ = self.ground.render(self.ground_poses(state, lags))
+        at its `ground_poses`, with the other vehicles at `others` (other_states)."""
+        images, _ = self.ground.render_fleet(self._fleet_poses(state, lags, others))
         return images
 
-    def ground_landmark_discs(self, state: VehicleState, lags: np.ndarray | None = None
-                              ) -> np.ndarray:
-        """Each landmark's image disc in each ground camera (GroundScene.landmark_discs)."""
-        return self.ground.landmark_discs(self.ground_poses(state, lags))
+    def ground_landmark_discs(self, state: VehicleState, lags: np.ndarray | None = None,
+                              others: Sequence[VehicleState] = ()) -> np.ndarray:
+        """Each landmark's image disc in each ground camera (GroundScene.landmark_discs),
+        the other vehicles' after this one's."""
+        return np.concatenate([self.ground.landmark_discs(poses, vehicle=v) for v, poses
+                               in enumerate(self._fleet_poses(state, lags, others))], axis=1)
+
+    def _fleet_poses(self, state: VehicleState, lags: np.ndarray | None,
+                     others: Sequence[VehicleState]) -> list[Pose | list[Pose]]:
+        return [self.ground_poses(s, lags) for s in (state, *others)]
 
     def ground_image_velocities(self, state: VehicleState) -> list[np.ndarray]:
         """Image-plane velocity (px/s) of the vehicle in each ground camera."""
@@ -158,4 +179,5 @@ class SimWorld:
         return None if self.target is None else self.target.path.pose(state.time - self._t0)
 
     def close(self) -> None:
-        self.vehicle.close()
+        for vehicle in (self.vehicle, *self.others):
+            vehicle.close()

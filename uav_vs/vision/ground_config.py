@@ -12,7 +12,9 @@ flat keys a node can declare:
     landmarks.<name>.saturation        [lo, hi] 0..255
     landmarks.<name>.value             [lo, hi] 0..255
 
-`read_params_file` turns the YAML into that flat dict, `load_ground_config` checks it.
+`read_params_file` turns the YAML into that flat dict (`read_params_files` layers several,
+as config/landmarks_uav2.yaml over config/ground_trinocular.yaml), `load_ground_config`
+checks it.
 """
 import sys
 from dataclasses import dataclass
@@ -52,6 +54,15 @@ def read_params_file(path: str | Path, node: str = '/**') -> dict[str, object]:
     flat: dict[str, object] = {}
     for section in dict.fromkeys(['/**', node]):
         flat |= flat_params((doc.get(section) or {}).get('ros__parameters') or {})
+    return flat
+
+
+def read_params_files(paths: Sequence[str | Path], node: str = '/**') -> dict[str, object]:
+    """The flat parameters of several params files, a later file's keys replacing an
+    earlier one's, as a node given several `--params-file` takes them."""
+    flat: dict[str, object] = {}
+    for path in paths:
+        flat |= read_params_file(path, node)
     return flat
 
 
