@@ -3,7 +3,7 @@
 ground station (its own landmark colours in the shared cameras' images), controller and
 relay, fly their own hold and setpoint and land. Judged against each vehicle's truth (its
 sim_world's, drawn by the shared ground cameras); crosstalk as the demo counted it on the
-ROS graph and the relays (out/crosstalk.json)."""
+ROS graph and the relays (out/fleet.json)."""
 import json
 import subprocess
 import sys
@@ -21,7 +21,7 @@ def test_two_vehicles_fly_their_own_setpoints_without_crosstalk(tmp_path):
                          timeout=400, cwd=REPO)
     print(run.stdout)
     assert run.returncode == 0, f'{run.stdout[-3000:]}\n{run.stderr[-3000:]}'
-    crosstalk = json.loads((tmp_path / 'crosstalk.json').read_text())
+    crosstalk = json.loads((tmp_path / 'fleet.json').read_text())['crosstalk']
     for member in FLEET:
         log = FlightLog.load(tmp_path / member.name / 'flight.npz')
         report = FlightReport.from_log(log)

@@ -64,6 +64,17 @@ def test_the_mission_flies_across_the_radio_link(flight):
     assert 'cmd_vel on the vehicle:' in stdout
 
 
+def test_every_command_lost_was_lost_by_the_link(flight):
+    """The commands the ground's controller sent (its recorder, same host) once the
+    vehicle's recorder had its first that never reached it: no more than the packets the
+    link dropped or cut that way, and the link did drop some (2 % loss, a 3 s cut)."""
+    sent, arrived = flight.log.commands.stamps, flight.received.stamps
+    lost = len(np.setdiff1d(sent[sent >= arrived.min()], arrived))
+    up = flight.link['ground_to_air']
+    assert 0 < lost <= up['lost'] + up['cut'], (lost, up['lost'], up['cut'])
+    assert 'across the link: cmd_vel' in flight.stdout
+
+
 def test_only_poses_commands_and_diagnostics_crossed(flight):
     log, link = flight.log, flight.link
     up, down = link['ground_to_air'], link['air_to_ground']
@@ -73,7 +84,7 @@ def test_only_poses_commands_and_diagnostics_crossed(flight):
     # ... and neither host's recorder took the other's images (JPEG would be smaller).
     with Bag(flight.out / 'bag') as ground, Bag(vehicle_bag(flight.out)) as vehicle:
         assert not [t for t in ground.topics if t.startswith('/onboard/image')], ground.topics
-        assert set(vehicle.topics) == {'/cmd_vel'}
+        assert set(vehicle.topics) == {'/cmd_vel', '/onboard/pose'}
     # The onboard pose crossed the link: each arrived at least the link's least delay late.
     onboard = log.onboard
     latency = (onboard.received - onboard.stamps) * 1e-9

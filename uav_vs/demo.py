@@ -60,7 +60,7 @@ from uav_vs.bag.reader import BagError
 from uav_vs.flight.fleet import FLEET, FLEET_SCENARIOS, fly_fleet
 from uav_vs.flight.plots import plot_flight
 from uav_vs.flight.recorder import MissionError
-from uav_vs.flight.replay import commands_from_bag, replay_flight
+from uav_vs.flight.replay import commands_from_bag, replay_flight, stamps_from_bag
 from uav_vs.flight.report import FlightLog, FlightReport, command_latencies, score_link_cut
 from uav_vs.flight.scenario import (GPS_DENIED_PARAMS, SCENARIOS, Configs, SitlLink, fly,
                                     vehicle_bag)
@@ -112,7 +112,7 @@ def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
 
 def fleet_closed_loop(out: Path, autopilot: str, sensors: str) -> int:
     """Two vehicles at once (uav_vs.flight.fleet); a summary, plots and flight log per
-    vehicle in out/<name>, and the crosstalk counts in out/crosstalk.json."""
+    vehicle in out/<name>, the crosstalk counts and CPU times in out/fleet.json."""
     profile = default_config_path(f'sensors_{sensors}.yaml')
     names = ', '.join(f'{m.name} (system id {m.system_id}, home {m.start})' for m in FLEET)
     print(f'closed loop, {len(FLEET)} vehicles: {names}; {sensors} sensors ({profile.name}); '
@@ -134,7 +134,8 @@ def fleet_closed_loop(out: Path, autopilot: str, sensors: str) -> int:
               f'publishers or subscribers outside /{member.name}: '
               f'{len(seen.foreign_publishers) + len(seen.foreign_subscribers)}; relay reports '
               f'of another system id: {seen.wrong_system})')
-    (out / 'crosstalk.json').write_text(json.dumps(counts, indent=1) + '\n')
+    (out / 'fleet.json').write_text(json.dumps(dict(
+        crosstalk=counts, cpu_s=run.cpu_s, run_s=run.run_s), indent=1) + '\n')
     print(f'CPU over the {run.run_s:.0f} s run: ' + ', '.join(
         f'{name} {s:.0f} s ({s / run.run_s:.2f} of a core)' for name, s in run.cpu_s.items())
         + ' (sim_cameras: the simulated ground cameras, every vehicle drawn)')
@@ -171,6 +172,12 @@ def two_hosts_closed_loop(scenario_name: str, out: Path, autopilot: str, sensors
             summary += (f'\ncmd_vel on the vehicle: {len(latency)} commands from vision poses; '
                         f'image stamp to command: median {np.median(latency):.1f} ms, '
                         f'p95 {np.percentile(latency, 95):.1f} ms')
+        summary += '\nacross the link: ' + '; '.join(
+            f'{what} {arrived} of {sent} arrived ({sent - arrived} lost)'
+            for what, sent, arrived in (
+                ('cmd_vel', *arrivals(log.commands.stamps, received.stamps)),
+                ('onboard/pose', *arrivals(stamps_from_bag(vehicle_bag(out), '/onboard/pose'),
+                                           log.onboard.stamps))))
         summary += f'\nCPU over the {log.run_s:.0f} s run: ' + ', '.join(
             f'{host} {s:.0f} s ({s / log.run_s:.2f} of a core)' for host, s in log.cpu_s.items())
         cut = score_link_cut(log, received)
@@ -184,6 +191,11 @@ def two_hosts_closed_loop(scenario_name: str, out: Path, autopilot: str, sensors
     with open(out / 'summary.txt', 'a') as f:
         f.write(summary + '\n')
     return code
+
+
+def arrivals(sent: np.ndarray, received: np.ndarray) -> tuple[int, int]:
+    """How many messages were sent, and how many of them arrived (matched by stamp)."""
+    return len(np.unique(sent)), len(np.intersect1d(sent, received))
 
 
 def sitl_closed_loop(scenario_name: str, out: Path, sensors: str, attach: str | None,

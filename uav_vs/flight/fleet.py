@@ -34,6 +34,8 @@ from uav_vs.flight.scenario import NORTH, Configs, Member, Scenario, Setpoint, _
     free_port
 from uav_vs.vision.ground_config import default_config_path
 
+UNKNOWN_NAMESPACE = '_NODE_NAMESPACE_UNKNOWN_'   # what rclpy names a node not discovered yet
+
 # Two vehicles: homes 1.7 m apart, their holds and setpoints 0.5 m apart in height, their
 # paths crossing in the middle of the area in plan (never in space).
 FLEET = (Member('uav1', 1, (-0.7, -0.5)),
@@ -94,8 +96,9 @@ def fly_fleet(flights: Sequence[tuple[Member, Scenario]], out_dir: Path,
                 '-p', 'vehicle.model:=sitl', '-p', 'onboard.rate:=0.0',
                 '-p', f'vehicle.sitl_connection:=tcp:127.0.0.1:{ports[0]}',
                 '-p', f'vehicle.system_id:={first.system_id}',
-                '-p', f'vehicle.start:=[{first.start[0]:.3f}, {first.start[1]:.3f}]',
-                '-p', f'fleet.names:=[{", ".join(m.name for m, _ in others)}]']
+                '-p', f'vehicle.start:=[{first.start[0]:.3f}, {first.start[1]:.3f}]']
+        if others:
+            args += ['-p', f'fleet.names:=[{", ".join(m.name for m, _ in others)}]']
         for (m, _), port in zip(others, ports[1:]):
             key = f'fleet.{m.name}'
             args += ['-p', f'{key}.truth_connection:=tcp:127.0.0.1:{port}',
@@ -152,10 +155,15 @@ def look(mission: _Mission, seen: Crosstalk) -> None:
     except RuntimeError:     # the recorder closed under us (InvalidHandle): its flight is over
         return
     seen.samples += 1
-    seen.foreign_publishers |= {f'{i.node_namespace}/{i.node_name}' for i in publishers
-                                if i.node_namespace != mission.ns}
-    seen.foreign_subscribers |= {f'{i.node_namespace}/{i.node_name}' for i in subscribers
-                                 if i.node_namespace != mission.ns}
+    seen.foreign_publishers |= foreign(publishers, mission.ns)
+    seen.foreign_subscribers |= foreign(subscribers, mission.ns)
     system = rec.relay.get('system_id', 'None')
     if system not in ('None', '') and int(system) != mission.member.system_id:
         seen.wrong_system += 1
+
+
+def foreign(endpoints, namespace: str) -> set[str]:
+    """The nodes of `endpoints` (TopicEndpointInfo) outside `namespace`. An endpoint whose
+    node DDS has not named yet (it comes after the endpoint) is left for a later look."""
+    return {f'{i.node_namespace}/{i.node_name}' for i in endpoints
+            if i.node_namespace not in (namespace, UNKNOWN_NAMESPACE)}

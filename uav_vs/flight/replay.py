@@ -143,6 +143,13 @@ def _wait(procs: dict, predicate, timeout: float, quiet: bool = False) -> None:
         time.sleep(0.05)
 
 
+def stamps_from_bag(bag: Path, topic: str, kind: type = PoseStamped) -> np.ndarray:
+    """The header stamps (ns) of a bag's messages on `topic`, of type `kind`."""
+    with Bag(bag) as b:
+        return np.array([stamp_to_ns(deserialize_message(m.raw, kind).header.stamp)
+                         for m in b.messages([topic])], np.int64)
+
+
 def commands_from_bag(bag: Path, topic: str = '/cmd_vel') -> CommandTrack:
     """The cmd_vel of a bag as a CommandTrack, each received when the bag took it."""
     stamps, received, values = [], [], []
