@@ -420,6 +420,34 @@ def test_recording_replays_to_the_recorded_bytes(ros_node, tmp_path):
         assert same_cdr(probe.got[f'/replay{topic}'], recorded[topic]), topic
 
 
+def test_best_effort_recording_subscribes_best_effort_to_a_reliable_publisher(ros_node, tmp_path):
+    """--best-effort: the recorder's subscription is best effort (as the graph shows it)
+    though the publisher offers reliable, which the bag still records as offered."""
+    out = tmp_path / 'rec'
+    rec = start('bag_record', ['-o', str(out), '--best-effort', 'chat'], tmp_path / 'logs',
+                'record')
+    chat = ros_node.create_publisher(String, '/chat', QoSProfile(depth=100))
+    sent = [String(data=f'hello {k}') for k in range(20)]
+    try:
+        assert wait_for(chat.get_subscription_count, 20), \
+            (tmp_path / 'logs' / 'record.log').read_text()
+        (sub,) = [i for i in ros_node.get_subscriptions_info_by_topic('/chat')
+                  if i.node_name == 'bag_recorder']
+        assert sub.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+        for text in sent:
+            chat.publish(text)
+            time.sleep(0.01)
+        time.sleep(0.5)
+        rec.send_signal(signal.SIGINT)
+        assert rec.wait(10) == 0
+    finally:
+        graph.stop([rec])
+    assert [deserialize_message(r, String) for r in bag_messages(out)['/chat']] == sent
+    meta = yaml.safe_load((out / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    offered = meta['topics_with_message_count'][0]['topic_metadata']['offered_qos_profiles']
+    assert offered[0]['reliability'] == 'reliable'
+
+
 def run_play(args: list[str]) -> subprocess.CompletedProcess:
     return subprocess.run([graph.executable('bag_play'), *args], capture_output=True, text=True,
                           timeout=30)

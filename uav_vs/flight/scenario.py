@@ -204,7 +204,8 @@ def recorded_topics(cameras: list[str], onboard_images: bool = True) -> list[str
 
 def vehicle_bag(out_dir: Path) -> Path:
     """The bag recorded on the vehicle's host, with two hosts: cmd_vel as it arrived there
-    and onboard/pose as it left."""
+    (best effort, as the relay takes it: no command is sent again) and onboard/pose as it
+    left."""
     return out_dir / 'vehicle_bag'
 
 
@@ -314,10 +315,10 @@ class _Mission:
         if self.bag is not None:
             topics = recorded_topics(cameras, onboard_images=self.hosts is None)
             self._start('bag_record', 'bag_record', [], args=['-o', str(self.bag), *topics])
-            if self.hosts is not None:     # the commands as the vehicle receives them
+            if self.hosts is not None:     # the commands as the relay receives them
                 self._start('bag_record_vehicle', 'bag_record', [], args=[
-                    '-o', str(vehicle_bag(self.bag.parent)), 'cmd_vel', 'onboard/pose'],
-                    on_vehicle=True)
+                    '-o', str(vehicle_bag(self.bag.parent)), '--best-effort', 'cmd_vel',
+                    'onboard/pose'], on_vehicle=True)
         world = self._world_args()
         target = ['-p', 'ground_target.enabled:=true'] if self.scenario.follow else []
         if self.hosts is None and self.member is None:

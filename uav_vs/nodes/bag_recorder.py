@@ -1,10 +1,11 @@
 """bag_record: record topics to a rosbag2 folder without deserializing them.
 
-    bag_record -o <dir> [--storage mcap|sqlite3] topic [topic ...] [--ros-args ...]
+    bag_record -o <dir> [--storage mcap|sqlite3] [--best-effort] topic [topic ...] [--ros-args ...]
 
 Each topic is subscribed once a publisher of it appears (raw CDR, KEEP_ALL, reliable
 and transient local when every publisher offers them, so nothing is lost at image
-rates) and recorded under its fully qualified name with the receive time of the node's
+rates; best effort with --best-effort, as a node on the far end of a lossy link
+subscribes: what arrives is recorded when it arrives, nothing is sent again) and recorded under its fully qualified name with the receive time of the node's
 clock, its message definition, the type hash computed from that definition (a warning
 if the publishers announce another) and the QoS its publishers offered. SIGINT or
 SIGTERM stops the recording and writes metadata.yaml (rosbag2 version 9, as Jazzy's
@@ -19,6 +20,7 @@ from functools import partial
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.qos import ReliabilityPolicy
 from rosbags.interfaces import Connection
 
 from uav_vs.bag.reader import BagError, record_request
@@ -34,6 +36,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog='bag_record', description=__doc__.split('\n')[0])
     p.add_argument('-o', '--output', required=True, help='bag folder to create (must not exist)')
     p.add_argument('--storage', choices=sorted(STORAGES), default='mcap', help='storage format')
+    p.add_argument('--best-effort', action='store_true',
+                   help='subscribe best effort, whatever the publishers offer')
     p.add_argument('topics', nargs='+', help='topics to record')
     return p.parse_args(argv)
 
@@ -41,9 +45,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 class BagRecorder(Node):
     """Subscribes each topic as soon as it has a publisher and writes what arrives."""
 
-    def __init__(self, writer: BagWriter, topics: list[str]) -> None:
+    def __init__(self, writer: BagWriter, topics: list[str], best_effort: bool = False) -> None:
         super().__init__('bag_recorder')
-        self._writer = writer
+        self._writer, self._best_effort = writer, best_effort
         self._pending = {self.resolve_topic_name(t) for t in topics}
         self._timer = self.create_timer(DISCOVERY_PERIOD_S, self._discover)
         self._discover()
@@ -66,8 +70,10 @@ class BagRecorder(Node):
             if announced.startswith('RIHS01_') and conn.digest != announced:
                 self.get_logger().warn(f'{topic}: its publishers announce type hash {announced}, '
                                        f'the definition stored hashes to {conn.digest}')
-            self.create_subscription(cls, topic, partial(self._write, conn),
-                                     lossless_qos(record_request(offered)), raw=True)
+            qos = lossless_qos(record_request(offered))
+            if self._best_effort:
+                qos.reliability = ReliabilityPolicy.BEST_EFFORT
+            self.create_subscription(cls, topic, partial(self._write, conn), qos, raw=True)
             self.get_logger().info(f'recording {topic} ({msgtype})')
         if not self._pending:
             self._timer.cancel()
@@ -93,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     rclpy.init(args=['bag_record', *ros_args])
     node = None
     try:
-        node = BagRecorder(writer, args.topics)
+        node = BagRecorder(writer, args.topics, args.best_effort)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
