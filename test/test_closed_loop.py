@@ -51,13 +51,15 @@ def test_reaches_setpoint_and_lands_on_pad_on_vision_alone(tmp_path):
 
     # The flight's bag replays through the open-loop graph (`make demo BAG=...`): the
     # vision nodes see the recorded (JPEG) frames and are as accurate as in flight.
-    # The recorder kept every frame: as many JPEG images as (reliable) camera_info, but
-    # for a frame or two at the start, before both subscriptions were matched.
+    # The recorder kept the frames: as many JPEG images as (reliable) camera_info, but for
+    # a frame or two at the start, before both subscriptions were matched, and the few a
+    # loaded machine loses of a best-effort stream (sensor-data QoS, as a camera offers it).
     with Bag(tmp_path / 'bag') as bag:
         counts = {t.lstrip('/'): info.count for t, info in bag.topics.items()}
     for cam in ('cam1', 'cam2', 'cam3', 'onboard'):
-        assert counts[f'{cam}/camera_info'] > 100
-        assert abs(counts[f'{cam}/image_raw/compressed'] - counts[f'{cam}/camera_info']) <= 2, cam
+        infos, images = counts[f'{cam}/camera_info'], counts[f'{cam}/image_raw/compressed']
+        assert infos > 100
+        assert 0.95 * infos - 2 <= images <= infos + 2, (cam, images, infos)
     posable = posable_poses(tmp_path / 'bag', {'ground': ('cam1', 'cam2', 'cam3'),
                                                 'onboard': ('onboard',)})
     replay = FlightReport.from_log(replay_flight(tmp_path / 'bag', tmp_path / 'replay'))
