@@ -50,7 +50,7 @@ FLEET_SCENARIOS = (
 
 @dataclass
 class Crosstalk:
-    """What the graph showed of one vehicle's commands (`FleetLog.crosstalk`)."""
+    """What the graph showed of one vehicle's commands (`FleetRun.crosstalk`)."""
 
     samples: int = 0                  # looks at the graph
     foreign_publishers: set = field(default_factory=set)    # cmd_vel publishers elsewhere
