@@ -31,7 +31,7 @@ from uav_vs import graph
 from uav_vs.flight.recorder import MissionError
 from uav_vs.flight.report import FlightLog
 from uav_vs.flight.scenario import NORTH, Configs, Member, Scenario, Setpoint, _Mission, \
-    free_port
+    free_port, world_args, xy_param
 from uav_vs.vision.ground_config import default_config_path
 
 UNKNOWN_NAMESPACE = '_NODE_NAMESPACE_UNKNOWN_'   # what rclpy names a node not discovered yet
@@ -88,22 +88,19 @@ def fly_fleet(flights: Sequence[tuple[Member, Scenario]], out_dir: Path,
 
     def start_cameras() -> None:
         (first, _), *others = flights
-        args = ['--params-file', str(configs.world_ground or configs.ground),
-                *(['--params-file', str(first.landmarks)] if first.landmarks else []),
-                '--params-file', str(configs.onboard), '--params-file', str(configs.world),
-                *(['--params-file', str(configs.sensors)] if configs.sensors else []),
+        args = [*world_args(configs, first.landmarks),
                 '-r', '__node:=sim_cameras', '-r', f'truth/pose:=/{first.name}/truth/pose',
                 '-p', 'vehicle.model:=sitl', '-p', 'onboard.rate:=0.0',
                 '-p', f'vehicle.sitl_connection:=tcp:127.0.0.1:{ports[0]}',
                 '-p', f'vehicle.system_id:={first.system_id}',
-                '-p', f'vehicle.start:=[{first.start[0]:.3f}, {first.start[1]:.3f}]']
+                *xy_param('vehicle.start', first.start)]
         if others:
             args += ['-p', f'fleet.names:=[{", ".join(m.name for m, _ in others)}]']
         for (m, _), port in zip(others, ports[1:]):
             key = f'fleet.{m.name}'
             args += ['-p', f'{key}.truth_connection:=tcp:127.0.0.1:{port}',
                      '-p', f'{key}.system_id:={m.system_id}',
-                     '-p', f'{key}.start:=[{m.start[0]:.3f}, {m.start[1]:.3f}]',
+                     *xy_param(f'{key}.start', m.start),
                      '-p', f'{key}.landmarks:={m.landmarks}']
         shared['sim_cameras'] = graph.start('sim_world', args, out_dir / 'logs', 'sim_cameras')
 
@@ -135,8 +132,7 @@ def fly_fleet(flights: Sequence[tuple[Member, Scenario]], out_dir: Path,
         for t in threads:
             t.join()
         graph.stop(list(shared.values()))
-    cpu = {m.name: sum(getattr(p, 'cpu_s', math.nan) for p in
-                       [*mission.procs.values(), *(p for _, p in mission.retired)])
+    cpu = {m.name: sum(getattr(p, 'cpu_s', math.nan) for p in mission.all_procs().values())
            for (m, _), mission in zip(flights, missions)}
     cpu |= {label: getattr(p, 'cpu_s', math.nan) for label, p in shared.items()}
     return FleetRun(logs, crosstalk, {label: p.returncode for label, p in shared.items()}, cpu,

@@ -209,6 +209,20 @@ def vehicle_bag(out_dir: Path) -> Path:
     return out_dir / 'vehicle_bag'
 
 
+def world_args(c: Configs, landmarks: Path | None = None) -> list[str]:
+    """sim_world's params files: the rig it renders (with `landmarks` over its own), the
+    onboard camera, the world and the sensor profile."""
+    return ['--params-file', str(c.world_ground or c.ground),
+            *(['--params-file', str(landmarks)] if landmarks else []),
+            '--params-file', str(c.onboard), '--params-file', str(c.world),
+            *(['--params-file', str(c.sensors)] if c.sensors else [])]
+
+
+def xy_param(name: str, xy: tuple[float, float]) -> list[str]:
+    """`-p name:=[x, y]`, a point in world (m) as a parameter."""
+    return ['-p', f'{name}:=[{xy[0]:.3f}, {xy[1]:.3f}]']
+
+
 def free_port() -> int:
     """A TCP port nobody listens on now, for the vehicle's MAVLink endpoint."""
     with socket.socket() as s:
@@ -251,7 +265,7 @@ class _Mission:
             graph.stop(list(self.procs.values()))
             log = self.rec.log(self.scenario.name, run_s=time.monotonic() - start, **self.events)
             self.rec.close()
-        procs = dict([*self.retired, *self.procs.items()])
+        procs = self.all_procs()
         log.exit_codes = {label: proc.returncode for label, proc in procs.items()}
         mission = resource.getrusage(resource.RUSAGE_SELF)
         log.cpu_s = {'ground': mission.ru_utime + mission.ru_stime}
@@ -260,6 +274,10 @@ class _Mission:
             log.cpu_s[host] = log.cpu_s.get(host, 0.0) + getattr(proc, 'cpu_s', math.nan)
         log.failed_logs = graph.failed_logs(procs)
         return log
+
+    def all_procs(self) -> dict[str, subprocess.Popen]:
+        """Every process the mission started, by label: the retired, then the running."""
+        return dict([*self.retired, *self.procs.items()])
 
     # ---------------------------------------------------------------- graph
     def _start(self, label: str, name: str, ros_args: list[str], args: list[str] = (),
@@ -274,12 +292,6 @@ class _Mission:
                                         env=env, args=args, wrap=wrap)
         self.procs[label].host = 'air' if wrap else 'ground'
 
-    def _world_args(self) -> list[str]:
-        c = self.configs
-        return ['--params-file', str(c.world_ground or c.ground), '--params-file', str(c.onboard),
-                '--params-file', str(c.world),
-                *(['--params-file', str(c.sensors)] if c.sensors else [])]
-
     def _start_member_world(self, timeout: float) -> str:
         """The member vehicle's sim_world in its namespace: the vehicle (home at its start,
         its system id), its onboard camera, no ground cameras (the fleet's sim_cameras
@@ -287,9 +299,9 @@ class _Mission:
         and the ground cameras run (ready), the relay's connection to it."""
         port, m = free_port(), self.member
         self._start('sim_world', 'sim_world', [
-            *self._world_args(), '-p', f'vehicle.connection:=tcpin:127.0.0.1:{port}',
+            *world_args(self.configs), '-p', f'vehicle.connection:=tcpin:127.0.0.1:{port}',
             '-p', f'vehicle.autopilot:={self.autopilot}', '-p', f'vehicle.system_id:={m.system_id}',
-            '-p', f'vehicle.start:=[{m.start[0]:.3f}, {m.start[1]:.3f}]',
+            *xy_param('vehicle.start', m.start),
             '-p', f'vehicle.truth_connection:=tcpin:127.0.0.1:{self.truth_port}',
             '-p', 'ground.rate:=0.0', '-p', f'world.seed:={m.system_id}'])
         self._wait(f'{self.ns}/sim_world', lambda: f'{self.ns}/sim_world' in self.rec.reporting,
@@ -319,7 +331,7 @@ class _Mission:
                 self._start('bag_record_vehicle', 'bag_record', [], args=[
                     '-o', str(vehicle_bag(self.bag.parent)), '--best-effort', 'cmd_vel',
                     'onboard/pose'], on_vehicle=True)
-        world = self._world_args()
+        world = world_args(c)
         target = ['-p', 'ground_target.enabled:=true'] if self.scenario.follow else []
         if self.hosts is None and self.member is None:
             self._start('sim_world', 'sim_world', [*world, *vehicle, *target])

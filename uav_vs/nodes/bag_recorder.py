@@ -1,12 +1,14 @@
 """bag_record: record topics to a rosbag2 folder without deserializing them.
 
-    bag_record -o <dir> [--storage mcap|sqlite3] [--best-effort] topic [topic ...] [--ros-args ...]
+    bag_record -o <dir> [--storage mcap|sqlite3] [--best-effort] topic [topic ...]
+               [--ros-args ...]
 
 Each topic is subscribed once a publisher of it appears (raw CDR, KEEP_ALL, reliable
 and transient local when every publisher offers them, so nothing is lost at image
 rates; best effort with --best-effort, as a node on the far end of a lossy link
-subscribes: what arrives is recorded when it arrives, nothing is sent again) and recorded under its fully qualified name with the receive time of the node's
-clock, its message definition, the type hash computed from that definition (a warning
+subscribes: what arrives is recorded when it arrives, nothing is sent again) and
+recorded under its fully qualified name with the receive time of the node's clock, its
+message definition, the type hash computed from that definition (a warning
 if the publishers announce another) and the QoS its publishers offered. SIGINT or
 SIGTERM stops the recording and writes metadata.yaml (rosbag2 version 9, as Jazzy's
 `ros2 bag` reads it). A topic name that ROS 2 does not allow stops it with one FATAL
