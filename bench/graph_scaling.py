@@ -5,9 +5,12 @@ Every flight has the ideal sensors (config/sensors_ideal.yaml); the latency is i
 stamp -> cmd_vel (uav_vs.flight.report.command_latencies).
 - graph/two_hosts: `python -m uav_vs.demo --hosts 2 --scenario land_on_pad` (root: network
   namespaces) beside the same on one host, the commands as the vehicle's own recorder
-  received them across the link (20 +- 10 ms, 2 % loss). Target: p95 within
-  the one-host p95 + the link's own p95 delay (ground to vehicle) + 10 ms, hold RMS within
-  1.5 times the one-host one.
+  received them across the link (20 +- 10 ms, 2 % loss). Target: p95 within the one-host
+  p95 + the link's own p95 delay (ground to vehicle) + 10 ms, hold RMS within 1.5 times
+  the one-host one. Then the same per camera: graph/two_hosts/ground_frames (the
+  controller on the ground, its commands across the link once) and .../onboard_frames
+  (the controller on the vehicle, nothing across), each against its one-host p95 + the
+  link's p95 per crossing + 10 ms.
 - graph/vehicles/<name>: the two vehicles of `--vehicles 2` flown together
   (uav_vs.flight.fleet), each beside its own mission flown alone: its commands' latency,
   its hold (target: within the alone figure + 1 cm), the CPU its nodes took (cores), the
@@ -45,21 +48,25 @@ def hold_rms_cm(log: FlightLog) -> float:
     return round(FlightReport.from_log(log).setpoints[0].error_rms_m * 100, 2)
 
 
-def two_hosts(out: Path, one_ms: np.ndarray, one_hold_cm: float) -> None:
+def two_hosts(out: Path, one: FlightLog) -> None:
     if os.geteuid() != 0:
         print('graph/two_hosts: not run (network namespaces need root)', flush=True)
         return
     if not demo(out, '--hosts', '2', '--scenario', 'land_on_pad'):
         return
     log = FlightLog.load(out / 'flight.npz')
-    latency = command_latencies(replace(log, commands=commands_from_bag(vehicle_bag(out))))
+    on_vehicle = replace(log, commands=commands_from_bag(vehicle_bag(out)))
     held = json.loads((out / 'link.json').read_text())['ground_to_air']['held']
     link_p95 = float(np.percentile(held, 95)) * 1e3
-    report('graph', 'graph/two_hosts', latency, 'one host, image stamp -> cmd_vel', one_ms,
-           link_p95_ms=round(link_p95, 1),
-           bound_p95_ms=round(float(np.percentile(one_ms, 95)) + link_p95 + 10, 1),
-           hold_rms_cm=hold_rms_cm(log), one_host_hold_rms_cm=one_hold_cm,
-           failure=log.failure or None)
+    for source, crossings in ((None, 1), ('ground', 1), ('onboard', 0)):
+        one_ms = command_latencies(one, source)
+        name = f'graph/two_hosts/{source}_frames' if source else 'graph/two_hosts'
+        report('graph', name, command_latencies(on_vehicle, source),
+               f'one host, {source or "all"} frames, image stamp -> cmd_vel', one_ms,
+               crossings=crossings, link_p95_ms=round(link_p95, 1),
+               bound_p95_ms=round(float(np.percentile(one_ms, 95)) + crossings * link_p95 + 10, 1),
+               hold_rms_cm=hold_rms_cm(log), one_host_hold_rms_cm=hold_rms_cm(one),
+               failure=log.failure or None)
 
 
 def vehicles(out: Path) -> None:
@@ -85,7 +92,5 @@ def main() -> None:
         tmp = Path(tmp)
         if not demo(tmp / 'one', '--scenario', 'land_on_pad'):
             return
-        one = FlightLog.load(tmp / 'one' / 'flight.npz')
-        one_ms = command_latencies(one)
-        two_hosts(tmp / 'two_hosts', one_ms, hold_rms_cm(one))
+        two_hosts(tmp / 'two_hosts', FlightLog.load(tmp / 'one' / 'flight.npz'))
         vehicles(tmp / 'vehicles')

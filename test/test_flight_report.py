@@ -56,6 +56,8 @@ def test_sources_commands_and_setpoints_are_scored_exactly():
 
     latency = command_latencies(log)      # the first command that carries each frame's stamp
     np.testing.assert_allclose(latency, 30.0 + np.arange(50))
+    np.testing.assert_allclose(command_latencies(log, 'ground'), latency)
+    assert len(command_latencies(log, 'onboard')) == 0      # no onboard frame in this log
     assert report.commands.commands == 150 and report.commands.from_images == 50
     assert report.commands.latency_median_ms == pytest.approx(54.5)
     assert report.commands.latency_p95_ms == pytest.approx(np.percentile(30.0 + np.arange(50), 95))

@@ -1,8 +1,9 @@
 """The closed loop on two hosts over a radio link (uav_vs.sim.radio_link), as the chapter's
 ground station and vehicle: `python -m uav_vs.demo --hosts 2`.
 
-The ground cameras, station, controller and the mission on one network namespace; the
-vehicle, its onboard camera and nodes and the relay on another; between them a link of
+The ground cameras, station, controller (on the ground pose) and the mission on one
+network namespace; the vehicle, its onboard camera and nodes, the controller (on the
+onboard pose) and the relay on another; between them a link of
 20 +- 10 ms and 2 % loss made in user space, and DDS discovery by static peers; once
 the vehicle holds, the link is cut for 3 s. Judged on the simulator's truth (the hold,
 the vehicle still while cut off), on what the link's forwarder says it carried (only
@@ -19,8 +20,9 @@ import numpy as np
 import pytest
 
 from conftest import REPO
-from uav_vs.flight.replay import commands_from_bag
+from uav_vs.flight.replay import commands_from_bag, stamps_from_bag
 from uav_vs.bag.reader import Bag
+from uav_vs.demo import ground_commands
 from uav_vs.flight.report import FlightLog, FlightReport, score_link_cut
 from uav_vs.flight.scenario import vehicle_bag
 
@@ -61,18 +63,45 @@ def test_the_mission_flies_across_the_radio_link(flight):
     assert report.landing is not None and report.landing.error_m <= 0.3, report.landing
     assert not any(log.exit_codes.values()), (log.exit_codes, log.failed_logs)
     assert 'radio link: 20 +- 10 ms, 2 % loss' in stdout
-    assert 'cmd_vel on the vehicle:' in stdout
+    assert 'cmd_vel on the vehicle from ground frames (controller across the link)' in stdout
 
 
-def test_every_command_lost_was_lost_by_the_link(flight):
-    """The commands the ground's controller sent (its recorder, same host) once the
-    vehicle's recorder had its first that never reached it: no more than the packets the
-    link dropped or cut that way, and the link did drop some (2 % loss, a 3 s cut)."""
-    sent, arrived = flight.log.commands.stamps, flight.received.stamps
+def test_every_command_and_pose_lost_was_lost_by_the_link(flight):
+    """The commands the controller sent from the ground (of the ground frames; its
+    recorder, same host) once the vehicle's recorder had its first that never reached it:
+    no more than the packets the link dropped or cut that way, and the link did drop some
+    (2 % loss, a 3 s cut). The same for the onboard poses the other way, taken best effort
+    as a controller on the ground would take them: each crosses in one packet, so a
+    packet lost is a pose lost, never one sent twice."""
+    sent, arrived = ground_commands(flight.log), flight.received.stamps
     lost = len(np.setdiff1d(sent[sent >= arrived.min()], arrived))
     up = flight.link['ground_to_air']
     assert 0 < lost <= up['lost'] + up['cut'], (lost, up['lost'], up['cut'])
+    sent = stamps_from_bag(vehicle_bag(flight.out), '/onboard/pose')
+    arrived = flight.log.onboard.stamps
+    lost = len(np.setdiff1d(sent[sent >= arrived.min()], arrived))
+    down = flight.link['air_to_ground']
+    assert 0 < lost <= down['lost'] + down['cut'], (lost, down['lost'], down['cut'])
     assert 'across the link: cmd_vel' in flight.stdout
+
+
+def first_receipts(track, stamps: np.ndarray) -> np.ndarray:
+    """When `track` first received a command of each of `stamps` (all in it)."""
+    order = np.lexsort((track.received, track.stamps))
+    return track.received[order][np.searchsorted(track.stamps[order], stamps)]
+
+
+def test_the_controller_runs_where_the_pose_it_flies_on_is_made(flight):
+    """On the ground pose its commands reach the ground's recorder a link's delay before
+    the vehicle's; on the onboard pose it runs on the vehicle, and the other way round."""
+    log, received, config = flight.log, flight.received, flight.link['config']
+    least_ns = (config['delay'] - config['jitter']) * 1e9
+    for frames, sign in ((log.ground_frames, 1), (log.onboard_frames, -1)):
+        stamps = np.intersect1d(log.commands.stamps[np.isin(log.commands.stamps, frames)],
+                                received.stamps)
+        assert len(stamps) > 20, len(stamps)
+        ahead = first_receipts(received, stamps) - first_receipts(log.commands, stamps)
+        assert sign * np.median(ahead) >= least_ns, (sign, np.median(ahead))
 
 
 def test_only_poses_commands_and_diagnostics_crossed(flight):

@@ -167,15 +167,19 @@ def two_hosts_closed_loop(scenario_name: str, out: Path, autopilot: str, sensors
     if vehicle_bag(out).exists() and (out / 'flight.npz').exists():
         log = FlightLog.load(out / 'flight.npz')
         received = commands_from_bag(vehicle_bag(out))
-        latency = command_latencies(replace(log, commands=received))
-        if len(latency):
-            summary += (f'\ncmd_vel on the vehicle: {len(latency)} commands from vision poses; '
-                        f'image stamp to command: median {np.median(latency):.1f} ms, '
-                        f'p95 {np.percentile(latency, 95):.1f} ms')
+        on_vehicle = replace(log, commands=received)
+        for source, where in (('ground', 'across the link'), ('onboard', 'on the vehicle')):
+            latency = command_latencies(on_vehicle, source)
+            if len(latency):
+                summary += (f'\ncmd_vel on the vehicle from {source} frames (controller '
+                            f'{where}): {len(latency)} commands; image stamp to command: '
+                            f'median {np.median(latency):.1f} ms, '
+                            f'p95 {np.percentile(latency, 95):.1f} ms')
         summary += '\nacross the link: ' + '; '.join(
             f'{what} {arrived} of {sent} arrived ({sent - arrived} lost)'
             for what, sent, arrived in (
-                ('cmd_vel', *arrivals(log.commands.stamps, received.stamps)),
+                ('cmd_vel of the ground frames', *arrivals(ground_commands(log),
+                                                           received.stamps)),
                 ('onboard/pose', *arrivals(stamps_from_bag(vehicle_bag(out), '/onboard/pose'),
                                            log.onboard.stamps))))
         summary += f'\nCPU over the {log.run_s:.0f} s run: ' + ', '.join(
@@ -191,6 +195,13 @@ def two_hosts_closed_loop(scenario_name: str, out: Path, autopilot: str, sensors
     with open(out / 'summary.txt', 'a') as f:
         f.write(summary + '\n')
     return code
+
+
+def ground_commands(log: FlightLog) -> np.ndarray:
+    """The stamps of the commands the controller sent from the ground host: those of the
+    ground cameras' frames (on the onboard pose it flies on the vehicle)."""
+    stamps = log.commands.stamps
+    return stamps[np.isin(stamps, log.ground_frames)]
 
 
 def arrivals(sent: np.ndarray, received: np.ndarray) -> tuple[int, int]:

@@ -15,6 +15,7 @@ from geometry_msgs.msg import PoseStamped, TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import NodeNameNonExistentError
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import Header
 
@@ -23,6 +24,9 @@ from uav_vs.ros.convert import (MessageError, msg_to_odometry, msg_to_pose, msg_
                                 pose_to_msg, stamp_to_ns, yaw_of, yaw_quaternion)
 
 RELAY = '/mavlink_relay_node'
+# The vision poses as the controller takes them (best effort): across a radio link, what
+# it lost is lost here too.
+AS_THE_CONTROLLER = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 
 class MissionError(RuntimeError):
@@ -53,11 +57,14 @@ class FlightRecorder:
         self.ekf: list[list[float]] = []        # FlightLog.ekf
         self.reporting: set[str] = set()        # nodes heard on /diagnostics
         self.messages: dict[str, str] = {}      # each node's last diagnostics message
+        self.clients: dict[str, object] = {}    # service clients by name, kept (prepare)
         node = self.node
         for name, topic in (('truth', 'truth/pose'), ('ground', 'ground/pose'),
                             ('onboard', 'onboard/pose'), ('target_truth', 'truth/target'),
                             ('target', 'target/pose')):
-            node.create_subscription(PoseStamped, topic, lambda m, n=name: self._on_pose(n, m), 100)
+            qos = AS_THE_CONTROLLER if name in ('ground', 'onboard') else 100
+            node.create_subscription(PoseStamped, topic, lambda m, n=name: self._on_pose(n, m),
+                                     qos)
         node.create_subscription(Odometry, 'autopilot/odom', self._on_odom, 100)
         node.create_subscription(TwistStamped, 'cmd_vel', self._on_cmd_vel, 100)
         for name, topic in (('ground_frames', f'/{first_camera}/camera_info'),
@@ -133,25 +140,38 @@ class FlightRecorder:
             return ()
         return tuple(sorted(name for name, _ in found))
 
+    def prepare(self, *services: tuple[type, str]) -> None:
+        """Make the clients of (type, name) `services` now, ahead of their calls: across
+        a lossy link, discovery of a client made at its call can lag the request, and the
+        server then drops its answer (its response writer not matched yet)."""
+        for srv_type, name in services:
+            self._client(srv_type, name)
+
+    def _client(self, srv_type, name: str, fresh: bool = False):
+        client = self.clients.get(name)
+        if client is not None and fresh:
+            self.node.destroy_client(client)
+            client = None
+        if client is None:
+            client = self.clients[name] = self.node.create_client(srv_type, name)
+        return client
+
     def call(self, srv_type, name: str, request, timeout: float, attempts: int = 1):
         """Call a service and wait for its answer; MissionError if none or unsuccessful.
 
         With `attempts` > 1 (idempotent services only) an unanswered request is sent
-        again: a server that has just been restarted may still be matched to its
-        predecessor's request.
+        again from a new client: a server that has just been restarted may still be
+        matched to its predecessor's request.
         """
         for attempt in range(attempts):
-            client = self.node.create_client(srv_type, name)
-            try:
-                if not client.wait_for_service(timeout_sec=timeout):
-                    raise MissionError(f'{name}: service not available')
-                future = client.call_async(request)
-                deadline = time.monotonic() + timeout
-                while not future.done() and time.monotonic() < deadline:
-                    time.sleep(0.02)
-                response = future.result() if future.done() else None
-            finally:
-                self.node.destroy_client(client)
+            client = self._client(srv_type, name, fresh=attempt > 0)
+            if not client.wait_for_service(timeout_sec=timeout):
+                raise MissionError(f'{name}: service not available')
+            future = client.call_async(request)
+            deadline = time.monotonic() + timeout
+            while not future.done() and time.monotonic() < deadline:
+                time.sleep(0.02)
+            response = future.result() if future.done() else None
             if response is not None:
                 break
         else:

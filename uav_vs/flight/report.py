@@ -393,12 +393,15 @@ def score_source(track: PoseTrack, truth: PoseTrack, exact: bool, start_ns: int,
                        float(np.median(latency)), float(np.percentile(latency, 95)))
 
 
-def command_latencies(log: FlightLog) -> np.ndarray:
+def command_latencies(log: FlightLog, source: str | None = None) -> np.ndarray:
     """Arrival minus stamp (ms) of the first command stamped with each camera frame's
     stamp: the one computed from that frame's vision pose (the controller's timer may
-    send it again, with the same stamp, until the next pose)."""
+    send it again, with the same stamp, until the next pose). `source` 'ground' or
+    'onboard' keeps the commands of that camera's frames only."""
+    frames = {'ground': log.ground_frames, 'onboard': log.onboard_frames}
     c = log.commands
-    from_images = np.isin(c.stamps, np.concatenate([log.ground_frames, log.onboard_frames]))
+    from_images = np.isin(c.stamps, np.concatenate(
+        [frames[source]] if source else list(frames.values())))
     stamps, index = np.unique(c.stamps[from_images], return_inverse=True)
     first = np.full(len(stamps), np.iinfo(np.int64).max)
     np.minimum.at(first, index, c.received[from_images])

@@ -171,10 +171,11 @@ def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
     or with `sitl` that ArduPilot SITL (started, ready within `startup_timeout`).
 
     With `hosts` the graph runs on two hosts joined by a radio link (uav_vs.sim.
-    radio_link): this process, the ground cameras and station, the controller and the
-    recorder on `ground`, which the calling thread must have entered (netns.enter, with
-    hosts.ros_env('ground') in os.environ); the vehicle, its onboard camera and nodes
-    and the relay on `air`. Only poses, commands and diagnostics cross the link.
+    radio_link): this process, the ground cameras and station, the controller while it
+    flies on the ground pose and the recorder on `ground`, which the calling thread must
+    have entered (netns.enter, with hosts.ros_env('ground') in os.environ); the vehicle,
+    its onboard camera and nodes, the controller while it flies on the onboard pose and
+    the relay on `air`. Only poses, setpoints, commands and diagnostics cross the link.
     link_monitor_node on the ground says whether the vehicle is heard; with `cut_link` the
     link is cut for that many seconds once the hold is reached, then the mission goes on.
 
@@ -385,7 +386,9 @@ class _Mission:
                 '-r', f'__ns:={self.ns}', *remaps]
 
     def _start_controller(self, source: str) -> None:
-        """(Re)start fuzzy_controller_node flying on `source`'s pose (ground or onboard)."""
+        """(Re)start fuzzy_controller_node flying on `source`'s pose (ground or onboard),
+        on the host that makes that pose: on two hosts an onboard pose never crosses the
+        link, and its commands neither."""
         old = self.procs.pop('fuzzy_controller_node', None)
         if old is not None:
             graph.stop([old])
@@ -394,7 +397,7 @@ class _Mission:
         self._start('fuzzy_controller_node', 'fuzzy_controller_node', [
             '--params-file', str(self.configs.controller),
             '-p', f'controller.pose_topic:={source}/pose', '-p', 'controller.command_frame:=world'],
-            log_name=f'fuzzy_controller_node_{source}')
+            log_name=f'fuzzy_controller_node_{source}', on_vehicle=source == 'onboard')
 
     def _check_alive(self) -> None:
         for label, proc in self.procs.items():
@@ -413,6 +416,8 @@ class _Mission:
     # ---------------------------------------------------------------- mission
     def _fly(self, startup_timeout: float) -> None:
         rec, s = self.rec, self.scenario
+        rec.prepare((Trigger, 'set_guided'), (SetBool, 'arm'), (Trigger, 'takeoff'),
+                    (Trigger, 'land'))
         self._wait('the relay to connect and the vehicle to be ready to arm',
                    lambda: rec.relay.get('link') == 'connected'
                    and rec.relay.get('prearm_ok') == 'True', startup_timeout)

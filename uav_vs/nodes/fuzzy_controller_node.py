@@ -37,6 +37,7 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PolygonStamped, PoseStamped, TwistStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Header
 from std_srvs.srv import SetBool
 
@@ -47,6 +48,11 @@ from uav_vs.ros.convert import (MessageError, check_frame, msg_to_pose, polygon_
 from uav_vs.ros.fuzzy_params import fuzzy_params
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, ThrottledWarnings, run
 from uav_vs.ros.params import LiveParams, Param, T, declare
+
+# Measurements (pose, target): best effort. A late one is worth less than none: across a
+# lossy radio link a reliable one lost is sent again a heartbeat later, hundreds of ms
+# old. Reliable publishers (the vision nodes, bags) match it.
+MEASUREMENT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 PARAMS = [
     Param('controller.mode', T.STRING, 'pose', 'pose (x, y, z, yaw) or tracking (heading)',
@@ -129,9 +135,10 @@ class FuzzyControllerNode(Node):
         self.pub = self.create_publisher(TwistStamped, 'cmd_vel', 10)
         if tracking:
             self.create_subscription(PolygonStamped, p['controller.target_topic'],
-                                     self.on_target, 10)
+                                     self.on_target, MEASUREMENT_QOS)
         else:
-            self.create_subscription(PoseStamped, p['controller.pose_topic'], self.on_pose, 10)
+            self.create_subscription(PoseStamped, p['controller.pose_topic'], self.on_pose,
+                                     MEASUREMENT_QOS)
             self.create_subscription(PoseStamped, 'setpoint', self.on_setpoint, 10)
         self.create_service(SetBool, 'controller/enable', self.on_enable)
         self.warnings = ThrottledWarnings(self)

@@ -38,6 +38,7 @@ import os
 import random
 import select
 import signal
+import socket
 import struct
 import subprocess
 import sys
@@ -80,6 +81,7 @@ class ChannelStats:
     cut: int = 0                 # dropped while the link was cut
     delays: list[float] = field(default_factory=list)  # s, each admitted packet's delay
     held: list[float] = field(default_factory=list)    # s, each delivered packet's stay
+    ports: dict[int, int] = field(default_factory=dict)  # UDP packets per destination port
 
 
 class Channel:
@@ -91,10 +93,13 @@ class Channel:
         self._last_due = -float('inf')
         self._z, self._z_time = rng.gauss(0.0, 1.0), None      # the wander, N(0, 1)
 
-    def admit(self, now: float, size: int, cut: bool) -> float | None:
-        """The time a packet entering at `now` leaves the link; None if it is lost."""
+    def admit(self, now: float, size: int, cut: bool, port: int | None = None) -> float | None:
+        """The time a packet entering at `now` leaves the link; None if it is lost.
+        `port` is its UDP destination port, counted to tell what crossed."""
         self.stats.packets += 1
         self.stats.bytes += size
+        if port is not None:
+            self.stats.ports[port] = self.stats.ports.get(port, 0) + 1
         if cut:
             self.stats.cut += 1
             return None
@@ -111,6 +116,14 @@ class Channel:
         self._last_due = due
         self.stats.delays.append(due - now)
         return due
+
+
+def udp_port(packet: bytes) -> int | None:
+    """The destination port of an IPv4 UDP packet; None for anything else."""
+    if len(packet) < 24 or packet[0] >> 4 != 4 or packet[9] != socket.IPPROTO_UDP:
+        return None
+    header = (packet[0] & 0x0F) * 4
+    return int.from_bytes(packet[header + 2:header + 4], 'big')
 
 
 def open_tun(name: str) -> int:
@@ -152,7 +165,7 @@ class Forwarder:
             except BlockingIOError:
                 return
             now = time.monotonic()
-            due = channel.admit(now, len(packet), self.cut)
+            due = channel.admit(now, len(packet), self.cut, udp_port(packet))
             if due is not None:
                 heapq.heappush(self._queue, (due, next(self._order), out, packet, now, channel))
 
@@ -283,11 +296,11 @@ class TwoHosts:
 
     def ros_env(self, host: str) -> dict[str, str]:
         """The environment of a ROS process on `host`: config/fastdds_radio.xml, and
-        discovery by unicast to the other host."""
+        discovery by unicast to the other host and to this one's loopback."""
         other = 'air' if host == 'ground' else 'ground'
         return {'FASTRTPS_DEFAULT_PROFILES_FILE': str(default_config_path('fastdds_radio.xml')),
-                'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
-                'ROS_STATIC_PEERS': self.address(other)}
+                'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET',
+                'ROS_STATIC_PEERS': f'{self.address(other)};127.0.0.1'}
 
     def cut(self, on: bool = True) -> None:
         """Cut the link (every packet dropped) or, with on=False, restore it."""
