@@ -197,9 +197,17 @@ def test_occlusion_covers_every_landmark_it_is_told_to(ros_node, processes):
     ('unsynchronised.lag:=0.5', 'unsynchronised.lag: expected a number in [0, 0.1]'),
     ('occlusion.fraction:=1.5', 'occlusion.fraction: expected a number in [0, 1]'),
     ('fleet.names:=[uav2]', 'fleet.uav2.truth_connection: missing'),
+    (('fleet.names:=[uav2]', 'fleet.uav2.truth_connection:=tcp:127.0.0.1:5760',
+      'fleet.uav2.landmarks:=/nonexistent/landmarks_uav2.yaml'),
+     'fleet.uav2.landmarks: /nonexistent/landmarks_uav2.yaml: [Errno 2] No such file'),
+    (('fleet.names:=[uav2]', 'fleet.uav2.truth_connection:=tcp:127.0.0.1:5760',
+      f'fleet.uav2.landmarks:={REPO / "config" / "link_monitor.yaml"}'),
+     'link_monitor.yaml: landmarks.names: expected a list of at least 2 distinct names'),
 ])
 def test_bad_parameter_stops_it_with_one_line(override, expected):
-    run = subprocess.run([executable('sim_world'), '--ros-args', *FILES, '-p', override],
+    overrides = [override] if isinstance(override, str) else override
+    run = subprocess.run([executable('sim_world'), '--ros-args', *FILES,
+                          *(a for o in overrides for a in ('-p', o))],
                          capture_output=True, text=True, timeout=60)
     assert run.returncode == 2
     fatal = [line for line in (run.stdout + run.stderr).splitlines() if 'FATAL' in line]
