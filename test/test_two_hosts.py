@@ -70,9 +70,10 @@ def test_every_command_and_pose_lost_was_lost_by_the_link(flight):
     """The commands the controller sent from the ground (of the ground frames; its
     recorder, same host) once the vehicle's recorder had its first that never reached it:
     no more than the packets the link dropped or cut that way, and the link did drop some
-    (2 % loss, a 3 s cut). The same for the onboard poses the other way, taken best effort
-    as a controller on the ground would take them: each crosses in one packet, so a
-    packet lost is a pose lost, never one sent twice."""
+    (2 % loss, a 3 s cut). The same bound for the onboard poses the other way, taken best
+    effort as a controller on the ground would take them; that some were lost is not
+    asked: the homography node may start after the cut, and at 2 % a hundred poses all
+    cross one time in ten (test_radio_link shows a message crosses once)."""
     sent, arrived = ground_commands(flight.log), flight.received.stamps
     lost = len(np.setdiff1d(sent[sent >= arrived.min()], arrived))
     up = flight.link['ground_to_air']
@@ -81,7 +82,7 @@ def test_every_command_and_pose_lost_was_lost_by_the_link(flight):
     arrived = flight.log.onboard.stamps
     lost = len(np.setdiff1d(sent[sent >= arrived.min()], arrived))
     down = flight.link['air_to_ground']
-    assert 0 < lost <= down['lost'] + down['cut'], (lost, down['lost'], down['cut'])
+    assert lost <= down['lost'] + down['cut'], (lost, down['lost'], down['cut'])
     assert 'across the link: cmd_vel' in flight.stdout
 
 
