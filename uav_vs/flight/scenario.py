@@ -506,9 +506,23 @@ class _Mission:
 
     def _start_onboard(self) -> None:
         """Start homography_pose_node at the hover, initialised (init.*) at the ground
-        station's mean pose over the last second, and wait for its first pose."""
-        rows = np.array(self.rec.rows['ground'][-60:], dtype=float)
-        recent = rows[rows[:, 0] >= rows[-1, 0] - 1e9]
+        station's mean pose over the last second, once every pose of that second is
+        within the hold's tolerance (after a cut link the vehicle flies back first), and
+        wait for its first pose."""
+        hold = self.scenario.hold
+        recent = np.empty((0, 6))
+
+        def still() -> bool:
+            nonlocal recent
+            rows = np.array(self.rec.rows['ground'][-90:], dtype=float)
+            if not self._fresh('ground') or rows[-1, 0] - rows[0, 0] < 1e9:
+                return False
+            recent = rows[rows[:, 0] >= rows[-1, 0] - 1e9]
+            off = np.linalg.norm(recent[:, 2:5] - hold.position, axis=1)
+            turn = np.abs(np.remainder(recent[:, 5] - hold.yaw + np.pi, 2 * np.pi) - np.pi)
+            return bool((off <= hold.tolerance).all() and (turn <= hold.yaw_tolerance).all())
+
+        self._wait('the vehicle still at the hold on ground/pose', still, hold.timeout)
         x, y, z = recent[:, 2:5].mean(axis=0)
         yaw = math.atan2(np.sin(recent[:, 5]).mean(), np.cos(recent[:, 5]).mean())
         self.events['onboard_start_ns'] = time.time_ns()
