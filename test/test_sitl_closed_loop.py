@@ -68,6 +68,8 @@ def test_the_mission_flies_arducopter_sitl_by_vision(flight):
     report = FlightReport.from_log(log)
     assert log.failure == '', log.failure
     assert 'ArduCopter SITL' in stdout and 'started in network namespace' in stdout
+    # its boot ran faster than real time, and the flight at real time (the scores below)
+    assert 'ArduCopter SITL ready to arm at' in stdout and 'until then' in stdout, stdout
     assert [e.source for e in log.setpoints] == ['ground', 'onboard', 'onboard']
     for event in log.setpoints:      # the controller flew on a vision pose, nothing else
         assert event.controller_inputs == tuple(sorted((f'/{event.source}/pose', '/setpoint')))

@@ -17,7 +17,8 @@ ideal`) switches every effect off but the calibrated lens.
 `make demo AUTOPILOT=ardupilot-sitl` (`--autopilot ardupilot-sitl`) flies the same mission
 with ArduCopter SITL as the vehicle (its physics, EKF and GUIDED controller) at real time:
 run as root, it starts the SITL binary (uav_vs.sim.sitl_process) in a loopback-only
-network namespace that the whole graph joins; `SITL=tcp:HOST:PORT` (`--sitl`) attaches
+network namespace that the whole graph joins, its boot on the ground (until ready to arm)
+run faster than real time; `SITL=tcp:HOST:PORT` (`--sitl`) attaches
 to a SITL already running instead (the relay on that port, the truth on `--sitl-truth`,
 by default the same host's next SERIAL port, PORT + 2).
 `SCENARIO=gps_denied` (`--scenario gps_denied`, ArduPilot SITL only) flies without GPS:
@@ -51,6 +52,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -66,13 +68,13 @@ from uav_vs.flight.scenario import (GPS_DENIED_PARAMS, SCENARIOS, Configs, SitlL
                                     vehicle_bag)
 from uav_vs.sim import netns, radio_link
 from uav_vs.sim.radio_link import LinkConfig, TwoHosts
-from uav_vs.sim.sitl_process import (HOW_TO_GET, ArduCopterSitl, enter_loopback_namespace,
-                                     find_binary)
+from uav_vs.sim.sitl_process import (HOW_TO_GET, WARM_UP_SPEEDUP, ArduCopterSitl,
+                                     enter_loopback_namespace, find_binary)
 from uav_vs.vision.ground_config import default_config_path
 
 AUTOPILOTS = ('ardupilot', 'px4', 'ardupilot-sitl')
 SENSORS = ('realistic', 'ideal')     # config/sensors_<profile>.yaml
-SITL_STARTUP_S = 120.0    # ArduCopter SITL is ready to arm ~45 s after its start (GPS, EKF3)
+SITL_STARTUP_S = 120.0    # an attached SITL is ready to arm ~45 s after its start (GPS, EKF3)
 
 
 def replay(bag: Path, out: Path, rate: float) -> int:
@@ -234,6 +236,13 @@ def sitl_closed_loop(scenario_name: str, out: Path, sensors: str, attach: str | 
             relay, serial1, _ = sitl.serial_ports
             print(f'ArduCopter SITL {binary} started in network namespace {namespace} '
                   f'(log {sitl.log_path})', flush=True)
+            if not gps_denied:      # without GPS it waits for the vision pose: real time
+                start = time.monotonic()
+                ready = sitl.warm_up()
+                print(f'ArduCopter SITL ready to arm at {ready:.1f} s of its time, '
+                      f'{time.monotonic() - start:.1f} s after its start (run at SIM_SPEEDUP '
+                      f'{WARM_UP_SPEEDUP:g} until then)' if ready is not None else
+                      'ArduCopter SITL not ready to arm after its warm-up: waiting', flush=True)
             return closed_loop(scenario_name, out, 'ardupilot', sensors,
                                SitlLink(f'tcp:127.0.0.1:{relay}', f'tcp:127.0.0.1:{serial1}'))
     finally:
