@@ -37,11 +37,10 @@ CORE_TESTS := $(addprefix test/test_,$(addsuffix .py,body_pose calibration_error
 
 install: $(STAMP)
 
-# One recipe for both venvs: $(1) the venv, $(2) its requirements file. --no-compile:
-# Python compiles a module when it is first imported, not every module of every package.
+# One recipe for both venvs: $(1) the venv, $(2) its requirements file.
 define install_venv
 	test -x $(1)/bin/python || $(PYTHON) -m venv $(1)
-	$(1)/bin/python -m pip install -q --no-compile -r $(2)
+	$(1)/bin/python -m pip install -q -r $(2)
 	$(1)/bin/python -m pip install -q --no-deps --no-build-isolation -e .
 	$(1)/bin/python tools/install_ros_prefix.py
 	$(1)/bin/python tools/build_interfaces.py
