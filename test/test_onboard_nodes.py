@@ -23,7 +23,7 @@ from conftest import REPO, wait_for
 from uav_vs.graph import executable, stop
 from uav_vs.flight.onboard_replay import replay_onboard_bag
 from uav_vs.ros.convert import (bgr_to_compressed, bgr_to_image, msg_to_pose, ns_to_stamp,
-                                polygon_to_array, stamp_to_ns)
+                                polygon_to_array, pose_to_msg, stamp_to_ns)
 from uav_vs.sim.onboard_scene import OnboardScene
 from uav_vs.vision.ground_config import read_params_file
 from uav_vs.vision.onboard_config import load_onboard_config
@@ -83,6 +83,7 @@ def _params_file(tmp_path: Path, changes: dict) -> Path:
     ({'init.mode': 'reference_points', 'init.image_points': [1.0, 2.0, 3.0, 4.0]},
      'init.image_points'),
     ({'klt.win_size': 16}, 'klt.win_size: expected an odd number'),
+    ({'init.mode': 'pose_topic', 'init.pose_topic': ''}, 'init.pose_topic: expected a topic'),
 ])
 def test_bad_parameter_stops_pose_node_with_one_line(tmp_path, changes, expected):
     run = subprocess.run([executable('homography_pose_node'), '--ros-args', '--params-file',
@@ -229,6 +230,73 @@ def test_textureless_and_blurred_frames_give_no_pose_and_diagnostics_say_why(
     p, q = msg_to_pose(probe.poses[stamps[4]])
     assert np.linalg.norm(p - p_true) < 0.01 * p_true[2]
     assert np.degrees((Rotation.from_matrix(R).inv() * Rotation.from_quat(q)).magnitude()) < 0.5
+
+
+def test_initialised_at_the_ground_pose_at_its_first_frames_stamp(ros_node, processes, cfg):
+    """init.mode pose_topic: the vehicle moves (0.2 m/s, 0.1 rad/s) and the ground poses
+    come at 30 Hz, none at a frame's stamp. The first frame waits for the pose after it
+    and starts at the poses either side interpolated; one with no pose near it is lost
+    and says why; a pose in another frame is counted and skipped."""
+    processes('homography_pose_node', [*POSE_NODE_ARGS, '-p', 'init.mode:=pose_topic'])
+    probe = Probe(ros_node)
+    ground = ros_node.create_publisher(PoseStamped, '/ground/pose', RELIABLE)
+    assert wait_for(lambda: probe.ready() and ground.get_subscription_count() > 0, 30)
+    scene = OnboardScene(cfg.camera, cfg.camera_to_body, seed=3)
+
+    def truth(t: float) -> tuple[np.ndarray, np.ndarray]:
+        return level_pose(0.3 + 0.2 * t, -0.2, 1.2, 0.4 + 0.1 * t)
+
+    def send(t: float, frame_id: str = 'world') -> None:
+        R, p = truth(t)
+        ground.publish(pose_to_msg(p, Rotation.from_matrix(R).as_quat(),
+                                   Header(stamp=ns_to_stamp(round(t * 1e9)), frame_id=frame_id)))
+
+    received = frames = 0
+
+    def frame(k: int) -> float:
+        nonlocal frames
+        t = stamp_to_ns(header(k).stamp) * 1e-9
+        probe.compressed.publish(bgr_to_compressed(scene.render(*truth(t)), header(k)))
+        frames += 1
+        assert wait_for(lambda: probe.value('frames') == str(frames), 15), probe.status
+        return t
+
+    def sent(*stamps: float) -> None:
+        nonlocal received
+        for t in stamps:
+            send(t)
+        received += len(stamps)
+        assert wait_for(lambda: probe.value('init_poses') == str(received), 15), probe.status
+
+    for _ in range(20):         # until the node hears the publisher
+        send(0.5, 'map')
+        if wait_for(lambda: probe.value('malformed_init_poses') not in (None, '0'), 1.0):
+            break
+    sent(0.5, 0.533)
+    frame(0)                    # at 1.0 s: no pose after it yet, it waits
+    assert probe.value('reason') == 'waiting for ground/pose at the first frame', probe.status
+    sent(1.3)                   # the poses either side are 0.8 s apart, neither within 0.02 s
+    assert wait_for(lambda: probe.value('lost') == '1', 15), probe.status
+    assert probe.value('last_loss') == ('no ground/pose pose at the first frame: none within '
+                                        '0.02 s of the image'), probe.status
+    t6 = stamp_to_ns(header(6).stamp) * 1e-9       # 1.4 s
+    sent(1.311, 1.344, 1.378)
+    frame(6)
+    frame(7)                    # while the first frame waits: lost, the first one kept
+    assert not probe.poses and probe.value('lost') == '2', probe.status
+    assert probe.value('last_loss') == 'the first frame waits for ground/pose'
+    sent(1.411)                 # the pose after it: initialised at the two interpolated
+    stamp6 = stamp_to_ns(header(6).stamp)
+    assert wait_for(lambda: stamp6 in probe.poses, 15), probe.status
+    R, p_true = truth(t6)
+    p, q = msg_to_pose(probe.poses[stamp6])
+    assert np.linalg.norm(p - p_true) < 1e-3, (p, p_true)
+    assert np.degrees((Rotation.from_matrix(R).inv() * Rotation.from_quat(q)).magnitude()) < 0.05
+    t8 = frame(8)               # tracked from there, no pose needed
+    p, q = msg_to_pose(probe.poses[stamp_to_ns(header(8).stamp)])
+    assert np.linalg.norm(p - truth(t8)[1]) < 0.01 * 1.2
+    assert probe.value('init_poses') == '7' and probe.value('malformed_init_poses') != '0'
+    assert probe.value('lost') == '2' and probe.value('poses') == '2'
 
 
 # --------------------------------------------------------------- target node

@@ -37,6 +37,7 @@ import numpy as np
 from std_srvs.srv import SetBool, Trigger
 
 from uav_vs import graph
+from uav_vs.autopilot.frames import wrap_angle
 from uav_vs.flight.ground_replay import DEFAULT_LAYOUT, ground_graph
 from uav_vs.flight.recorder import FlightRecorder, MissionError
 from uav_vs.flight.report import FlightLog, SetpointEvent
@@ -222,6 +223,13 @@ def world_args(c: Configs, landmarks: Path | None = None) -> list[str]:
 def xy_param(name: str, xy: tuple[float, float]) -> list[str]:
     """`-p name:=[x, y]`, a point in world (m) as a parameter."""
     return ['-p', f'{name}:=[{xy[0]:.3f}, {xy[1]:.3f}]']
+
+
+def at_setpoint(sp: Setpoint, positions: np.ndarray, yaws: np.ndarray) -> bool:
+    """Whether every pose (world positions, m; yaws, rad) is within `sp`'s tolerances."""
+    off = np.linalg.norm(np.reshape(positions, (-1, 3)) - sp.position, axis=1)
+    turn = np.abs(wrap_angle(np.asarray(yaws, float) - sp.yaw))
+    return bool((off <= sp.tolerance).all() and (turn <= sp.yaw_tolerance).all())
 
 
 def free_port() -> int:
@@ -485,15 +493,13 @@ class _Mission:
                               time.time_ns())
         self.events['setpoints'].append(event)
         self.rec.set_setpoint(sp.position, sp.yaw)
-        target = np.array(sp.position)
 
         def held() -> bool:
             if not self._fresh(source):
                 event.settled_ns = None
                 return False
             stamp, position, yaw = self.rec.latest[source]
-            if (np.linalg.norm(position - target) > sp.tolerance
-                    or abs(math.remainder(yaw - sp.yaw, 2 * math.pi)) > sp.yaw_tolerance):
+            if not at_setpoint(sp, position, yaw):
                 event.settled_ns = None
             elif event.settled_ns is None:
                 event.settled_ns = stamp
@@ -505,31 +511,24 @@ class _Mission:
         event.controller_inputs = self.rec.subscriptions('fuzzy_controller_node')
 
     def _start_onboard(self) -> None:
-        """Start homography_pose_node at the hover, initialised (init.*) at the ground
-        station's mean pose over the last second, once every pose of that second is
-        within the hold's tolerance (after a cut link the vehicle flies back first), and
-        wait for its first pose."""
+        """Start homography_pose_node at the hover once every ground station pose of the
+        last second is within the hold's tolerance (after a cut link the vehicle flies
+        back first), initialised (init.mode pose_topic) at the ground station's pose at
+        its first frame's stamp, and wait for its first pose."""
         hold = self.scenario.hold
-        recent = np.empty((0, 6))
 
         def still() -> bool:
-            nonlocal recent
             rows = np.array(self.rec.rows['ground'][-90:], dtype=float)
             if not self._fresh('ground') or rows[-1, 0] - rows[0, 0] < 1e9:
                 return False
             recent = rows[rows[:, 0] >= rows[-1, 0] - 1e9]
-            off = np.linalg.norm(recent[:, 2:5] - hold.position, axis=1)
-            turn = np.abs(np.remainder(recent[:, 5] - hold.yaw + np.pi, 2 * np.pi) - np.pi)
-            return bool((off <= hold.tolerance).all() and (turn <= hold.yaw_tolerance).all())
+            return at_setpoint(hold, recent[:, 2:5], recent[:, 5])
 
         self._wait('the vehicle still at the hold on ground/pose', still, hold.timeout)
-        x, y, z = recent[:, 2:5].mean(axis=0)
-        yaw = math.atan2(np.sin(recent[:, 5]).mean(), np.cos(recent[:, 5]).mean())
         self.events['onboard_start_ns'] = time.time_ns()
         self._start('homography_pose_node', 'homography_pose_node', [
-            '--params-file', str(self.configs.onboard), '-p', 'init.mode:=pose',
-            '-p', f'init.position:=[{x:.4f}, {y:.4f}, {z:.4f}]',
-            '-p', f'init.rpy:=[0.0, 0.0, {yaw:.5f}]'], on_vehicle=True)
+            '--params-file', str(self.configs.onboard), '-p', 'init.mode:=pose_topic',
+            '-p', 'init.pose_topic:=ground/pose'], on_vehicle=True)
         self._wait('the first onboard/pose', lambda: self._fresh('onboard'), 30.0)
 
     def _follow(self, follow: Follow) -> None:

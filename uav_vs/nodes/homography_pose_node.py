@@ -16,7 +16,12 @@ gave a pose, and /diagnostics: tracked features, inliers, RANSAC trials, reproje
 RMS, re-anchors, relocalisations, lost frames, malformed images and, when lost, why.
 
 The first image initialises the estimator (init.*); until that succeeds (a blurred or
-texture-less first frame) every new image retries. Frames reach it through
+texture-less first frame) every new image retries. With `init.mode` pose_topic it is
+initialised at the pose another source (`init.pose_topic`, e.g. the ground station's
+ground/pose) gives at the first frame's stamp: the poses either side of it interpolated,
+the frame held until the pose after it has come (the frames meanwhile are lost, for up to
+`init.max_wait` s; then a newer frame is held instead); a frame with no pose near it is
+lost. Frames reach it through
 uav_vs.ros.image_input: decoded once, in stamp order, malformed and future-stamped ones
 counted and skipped. When time goes back (a bag loop, a new replay) the estimator starts
 again as at start-up: the next frame initialises it from init.*.
@@ -24,18 +29,26 @@ again as at start-up: the next frame initialises it from init.*.
 import time
 from typing import Callable
 
+import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
 
-from uav_vs.ros.convert import pose_to_msg, stamp_to_ns
+from uav_vs.control.follow import PoseHistory
+from uav_vs.ros.convert import MessageError, check_frame, msg_to_pose, pose_to_msg, stamp_to_ns
 from uav_vs.ros.image_input import QOS_CHOICES, ImageInput, InputLimits, stamp_params
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, run
 from uav_vs.ros.params import REQUIRED, LiveParams, Param, T, declare
+from uav_vs.vision.camera import CalibrationError
 from uav_vs.vision.onboard_config import SETTINGS, load_onboard_config
 from uav_vs.vision.plane_pose import PlanePoseEstimator
 
 _TYPES = {'int': T.INTEGER, 'float': T.DOUBLE, 'str': T.STRING, 'floats': T.DOUBLE_ARRAY}
+
+# The initial poses come as the controller takes poses: the newest, lost ones not re-sent.
+INIT_POSE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 # The estimator's thresholds, read on every frame, take effect when set at run time; the
 # calibration, the first frame's pose and what builds the tracker (klt.*, the features'
@@ -83,12 +96,20 @@ class HomographyPoseNode(Node):
                                  limits=InputLimits.of(p, 'homography_pose'),
                                  on_restart=self.restart)
         self.counts = dict(frames=0, poses=0, lost=0)
+        self.init_poses = PoseHistory()
+        self.pending: tuple[np.ndarray, Header] | None = None   # the first frame, waiting
+        if cfg.init_pose is not None:
+            self.counts.update(init_poses=0, malformed_init_poses=0)
+            self.create_subscription(PoseStamped, cfg.init_pose.topic, self.on_init_pose,
+                                     INIT_POSE_QOS)
         self.last = dict(reason='no image yet', last_loss='', last_loss_stamp='',
                          process_ms=float('nan'), **{k: '' for k in STATS})
         self.diag = Diagnostics(self, hardware_id=cfg.camera.frame_id)
         self.create_timer(p['homography_pose.diagnostics_period'], self.publish_diagnostics)
+        source = (self.resolve_topic_name(cfg.init_pose.topic) if cfg.init_pose is not None
+                  else cfg.init_mode)
         self.get_logger().info(f'{cfg.camera.width}x{cfg.camera.height} camera, initialising '
-                               f'from {cfg.init_mode}, homography {cfg.params.method}')
+                               f'from {source}, homography {cfg.params.method}')
         LiveParams(self, [*ONBOARD_PARAMS, *NODE_PARAMS], {**onboard, **p}, self.reconfigure)
 
     def reconfigure(self, p: dict, changed: set[str]) -> Callable[[], None]:
@@ -105,14 +126,72 @@ class HomographyPoseNode(Node):
     def restart(self) -> None:
         """Time went back (a new replay): start again from init.*, as at start-up."""
         self.estimator = self.new_estimator()
+        self.init_poses, self.pending = PoseHistory(), None
+
+    def on_init_pose(self, msg: PoseStamped) -> None:
+        try:
+            check_frame(msg.header, self.frame_id)
+            position, q = msg_to_pose(msg)
+            if not np.isfinite(position).all():
+                raise MessageError('non-finite position')
+        except MessageError as err:
+            self.counts['malformed_init_poses'] += 1
+            self.get_logger().warn(f'{self.cfg.init_pose.topic}: {err}',
+                                   throttle_duration_sec=5.0)
+            return
+        self.counts['init_poses'] += 1
+        self.init_poses.add(stamp_to_ns(msg.header.stamp) * 1e-9,
+                            Rotation.from_quat(q).as_matrix(), position)
+        if self.pending is not None:
+            self.initialise_pending()
 
     def on_frame(self, gray, header: Header) -> None:
         self.counts['frames'] += 1
+        if self.estimator.initialised or self.cfg.init_pose is None:
+            self.process(gray, header, self.H0)
+            return
+        init = self.cfg.init_pose
+        if self.pending is not None:
+            waited = stamp_to_ns(header.stamp) - stamp_to_ns(self.pending[1].stamp)
+            if waited <= init.max_wait * 1e9:
+                self.lose(header, f'the first frame waits for {init.topic}')
+                return
+            self.lose(self.pending[1], f'no {init.topic} pose after the first frame within '
+                                       f'{init.max_wait:g} s')
+        self.pending = (gray, header)
+        self.initialise_pending()
+
+    def initialise_pending(self) -> None:
+        """The held first frame, initialised at the pose at its stamp once known."""
+        gray, header = self.pending
+        stamp, init = stamp_to_ns(header.stamp) * 1e-9, self.cfg.init_pose
+        if self.init_poses.newest() < stamp:
+            self.last['reason'] = f'waiting for {init.topic} at the first frame'
+            return      # the pose after the frame may still come
+        self.pending = None
+        found = self.init_poses.at(stamp, init.max_gap, init.max_interval)
+        if isinstance(found, str):
+            self.lose(header, f'no {init.topic} pose at the first frame: {found}')
+            return
+        try:
+            H0 = self.cfg.homography_at(*found)
+        except CalibrationError as err:
+            self.lose(header, str(err))
+            return
+        self.process(gray, header, H0)
+
+    def lose(self, header: Header, reason: str) -> None:
+        self.counts['lost'] += 1
+        self.last.update(reason=reason, last_loss=reason,
+                         last_loss_stamp=f'{stamp_to_ns(header.stamp) * 1e-9:.3f}')
+        self.get_logger().warn(f'no pose: {reason}', throttle_duration_sec=5.0)
+
+    def process(self, gray, header: Header, H0: np.ndarray | None) -> None:
         start = time.perf_counter()
         if self.estimator.initialised:
             result = self.estimator.update(gray)
         else:
-            result = self.estimator.initialise(gray, self.H0)
+            result = self.estimator.initialise(gray, H0)
             if result.ok:
                 self.get_logger().info(f'initialised on the frame stamped '
                                        f'{stamp_to_ns(header.stamp) * 1e-9:.3f} s')
@@ -120,10 +199,7 @@ class HomographyPoseNode(Node):
                          process_ms=round((time.perf_counter() - start) * 1e3, 2),
                          reason=result.reason)
         if not result.ok:
-            self.counts['lost'] += 1
-            self.last.update(last_loss=result.reason,
-                             last_loss_stamp=f'{stamp_to_ns(header.stamp) * 1e-9:.3f}')
-            self.get_logger().warn(f'no pose: {result.reason}', throttle_duration_sec=5.0)
+            self.lose(header, result.reason)
             return
         self.counts['poses'] += 1
         self.pose_pub.publish(pose_to_msg(result.position, result.quaternion,

@@ -29,7 +29,7 @@ from uav_vs.vision.plane_pose import PlanePoseParams, camera_pose, plane_homogra
 
 REQUIRED = None
 _P = PlanePoseParams()   # the estimator's defaults are the settings' defaults
-INIT_MODES = ('pose', 'reference_points')
+INIT_MODES = ('pose', 'reference_points', 'pose_topic')
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,19 @@ SETTINGS = (
     Setting('camera_to_base_link.rpy', 'floats', [np.pi, 0.0, -np.pi / 2],
             'optical frame orientation in base_link, fixed-axis roll pitch yaw, rad', size=3),
     Setting('init.mode', 'str', 'pose',
-            'first-frame plane homography from: pose or reference_points', choices=INIT_MODES),
+            'first-frame plane homography from: pose (init.position, init.rpy), '
+            'reference_points, or pose_topic (the pose another source gives at the first '
+            "frame's stamp)", choices=INIT_MODES),
+    Setting('init.pose_topic', 'str', 'ground/pose', 'with init.mode pose_topic: the '
+            'base_link poses (geometry_msgs/PoseStamped, world frame) the first frame is '
+            'initialised at, interpolated to its stamp'),
+    Setting('init.max_interval', 'float', 0.1, 'with init.mode pose_topic: poses either side '
+            'of the first frame at most this far apart are interpolated, s', 0.001, 10.0),
+    Setting('init.max_gap', 'float', 0.02, 'with init.mode pose_topic: else the nearest '
+            'pose, if at most this far from the frame, s', 0.0, 10.0),
+    Setting('init.max_wait', 'float', 1.0, 'with init.mode pose_topic: the first frame waits '
+            'this long (by image stamps) for the pose after it; later, a newer frame is '
+            'held instead, s', 0.01, 60.0),
     Setting('init.position', 'floats', [0.0, 0.0, 1.0], 'base_link position in world at the '
             'first frame (z = height above the ground plane), m', size=3),
     Setting('init.rpy', 'floats', [0.0, 0.0, 0.0], 'base_link roll pitch yaw in world at the '
@@ -134,14 +146,41 @@ SETTINGS = (
 )
 
 @dataclass(frozen=True)
+class InitFromPoses:
+    """init.mode pose_topic: where the poses come from and how close in time they must be."""
+
+    topic: str
+    max_interval: float
+    max_gap: float
+    max_wait: float
+
+
+@dataclass(frozen=True)
 class OnboardConfig:
     """Everything the plane-pose estimator needs (section 4)."""
 
     camera: Camera                 # intrinsics and distortion; R, t unused (identity, zero)
     camera_to_body: np.ndarray     # 4x4 pose of the optical frame in base_link, x_b = T x_c
-    initial_homography: np.ndarray  # H_0: plane (X, Y, 1), m -> ideal pixels of frame 0
-    params: PlanePoseParams
+    initial_homography: np.ndarray | None  # H_0: plane (X, Y, 1), m -> ideal pixels of
+    params: PlanePoseParams                 # frame 0 (None with init.mode pose_topic)
     init_mode: str
+    init_pose: InitFromPoses | None = None    # with init.mode pose_topic
+
+    def homography_at(self, R_wb: np.ndarray, p_wb: np.ndarray) -> np.ndarray:
+        """H_0 of a first frame taken with base_link at R_wb, p_wb (world)."""
+        return homography_at(self.camera, self.camera_to_body, R_wb, p_wb, 'init.pose_topic')
+
+
+def homography_at(camera: Camera, camera_to_body: np.ndarray, R_wb: np.ndarray,
+                  p_wb: np.ndarray, name: str) -> np.ndarray:
+    """The plane homography (eq 21) of the camera on base_link at R_wb, p_wb; `name`, the
+    parameter blamed when the camera is not above the plane looking down at it."""
+    R, t = camera_pose(R_wb, p_wb, camera_to_body)
+    if (-R.T @ t)[2] <= 0 or R[2, 2] >= 0:
+        raise CalibrationError(f'{name}: the camera must be above the ground plane (z > 0) '
+                               'and look down at it (check its orientation and '
+                               'camera_to_base_link.rpy)')
+    return plane_homography(camera.K, R, t)
 
 
 def load_onboard_config(params: Mapping[str, object]) -> OnboardConfig:
@@ -154,14 +193,16 @@ def load_onboard_config(params: Mapping[str, object]) -> OnboardConfig:
         raise ValueError(f"pose.refine: opencv ignores the skew of camera.K "
                          f"({camera.K[0, 1]:g}); use lm")
     T = camera_to_body(v['camera_to_base_link.xyz'], v['camera_to_base_link.rpy'])
+    init_pose = None
     if v['init.mode'] == 'pose':
         R_wb = Rotation.from_euler('xyz', v['init.rpy']).as_matrix()
-        R, t = camera_pose(R_wb, np.array(v['init.position']), T)
-        if (-R.T @ t)[2] <= 0 or R[2, 2] >= 0:
-            raise CalibrationError('init.position: the camera must be above the ground plane '
-                                   '(z > 0) and look down at it (check init.rpy and '
-                                   'camera_to_base_link.rpy)')
-        H0 = plane_homography(camera.K, R, t)
+        H0 = homography_at(camera, T, R_wb, np.array(v['init.position']), 'init.position')
+    elif v['init.mode'] == 'pose_topic':
+        if not v['init.pose_topic']:
+            raise CalibrationError('init.pose_topic: expected a topic name, got an empty one')
+        H0 = None
+        init_pose = InitFromPoses(v['init.pose_topic'], v['init.max_interval'],
+                                  v['init.max_gap'], v['init.max_wait'])
     else:
         H0 = _reference_homography(camera, np.array(v['init.plane_points']),
                                    np.array(v['init.image_points']))
@@ -186,7 +227,7 @@ def load_onboard_config(params: Mapping[str, object]) -> OnboardConfig:
         v['image_quality.min_sharpness'], v['relocalise.after_frames'],
         v['relocalise.features'], v['relocalise.max_features'], v['relocalise.ratio'],
         v['relocalise.max_shift'], v['pose.refine'])
-    return OnboardConfig(camera, T, H0, pose, v['init.mode'])
+    return OnboardConfig(camera, T, H0, pose, v['init.mode'], init_pose)
 
 
 def camera_to_body(xyz: list[float], rpy: list[float]) -> np.ndarray:
