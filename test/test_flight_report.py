@@ -53,6 +53,14 @@ def test_sources_commands_and_setpoints_are_scored_exactly():
     odom = report.sources['odom']          # on the truth's straight line: interpolation exact
     assert odom.samples == 49 and odom.position_rmse_m < 1e-9 and odom.yaw_rmse_deg < 1e-9
     assert report.sources['onboard'].samples == 0
+    # As received: the vehicle moved on at (1, 0.5, 0) m/s during the ground pose's 20 ms;
+    # the odometry arrived as stamped (the last one, past the truth, is left out).
+    moved = np.array([0.03, 0.0, 0.04]) - 0.020 * np.array([1.0, 0.5, 0.0])
+    assert ground.arrival_rmse_m == pytest.approx(np.linalg.norm(moved), abs=1e-9)
+    assert odom.arrival_rmse_m < 1e-9
+    log.fused = track(log.odom.stamps, log.odom.positions + [0.0, 0.0, 0.02], log.odom.yaws)
+    fused = FlightReport.from_log(log).sources['fused']
+    assert fused.samples == 49 and fused.position_rmse_m == pytest.approx(0.02, abs=1e-9)
 
     latency = command_latencies(log)      # the first command that carries each frame's stamp
     np.testing.assert_allclose(latency, 30.0 + np.arange(50))

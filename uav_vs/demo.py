@@ -103,11 +103,12 @@ def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
     nodes = ['3 camshift_node', 'trinocular_pose_node',
              *(['homography_pose_node'] if scenario.setpoints or scenario.landing else []),
              *(['target_tracker_node', 'target_follower_node'] if scenario.follow else []),
-             'fuzzy_controller_node', 'mavlink_relay_node']
+             'fuzzy_controller_node', 'mavlink_relay_node', 'pose_filter_node']
     print(f'closed loop: scenario {scenario.name}, {sensors} sensors ({profile.name}), '
           f"sim_world ({vehicle}) + {' + '.join(nodes)}, recorded to {out}/bag "
           f'(logs in {out}/logs/)', flush=True)
-    return report(fly(scenario, out, Configs(sensors=profile), autopilot=autopilot, sitl=sitl,
+    configs = Configs(sensors=profile, pose_filter=default_config_path('pose_filter.yaml'))
+    return report(fly(scenario, out, configs, autopilot=autopilot, sitl=sitl,
                       startup_timeout=SITL_STARTUP_S if sitl else 90.0, hosts=hosts,
                       cut_link=cut_link), out)
 

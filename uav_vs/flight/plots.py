@@ -17,7 +17,8 @@ from uav_vs.autopilot.frames import wrap_angle
 from uav_vs.flight.report import LABELS, SOURCES, FlightLog, interpolate, within
 
 STYLE = {'truth': dict(color='k', lw=1.2, ls='--'), 'ground': dict(color='tab:red', lw=1.0),
-         'onboard': dict(color='tab:blue', lw=1.0), 'odom': dict(color='tab:green', lw=1.0)}
+         'onboard': dict(color='tab:blue', lw=1.0), 'odom': dict(color='tab:green', lw=1.0),
+         'fused': dict(color='tab:purple', lw=1.0)}
 
 
 def plot_flight(log: FlightLog, out_dir: Path) -> list[Path]:

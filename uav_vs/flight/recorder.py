@@ -49,9 +49,9 @@ class FlightRecorder:
         self.home = np.array([home[0], home[1], 0.0])
         self.node = rclpy.create_node('scenario_runner', namespace=namespace or None,
                                       context=self.context)
-        self.rows: dict[str, list] = {k: [] for k in ('truth', 'ground', 'onboard', 'odom',
-                                                      'target_truth', 'target', 'commands',
-                                                      'ground_frames', 'onboard_frames')}
+        self.rows: dict[str, list] = {k: [] for k in (
+            'truth', 'ground', 'onboard', 'odom', 'fused', 'target_truth', 'target', 'commands',
+            'ground_frames', 'onboard_frames')}
         self.latest: dict[str, tuple[int, np.ndarray, float]] = {}
         self.relay: dict[str, str] = {}
         self.ekf: list[list[float]] = []        # FlightLog.ekf
@@ -61,7 +61,7 @@ class FlightRecorder:
         node = self.node
         for name, topic in (('truth', 'truth/pose'), ('ground', 'ground/pose'),
                             ('onboard', 'onboard/pose'), ('target_truth', 'truth/target'),
-                            ('target', 'target/pose')):
+                            ('target', 'target/pose'), ('fused', 'fused/pose')):
             qos = AS_THE_CONTROLLER if name in ('ground', 'onboard') else 100
             node.create_subscription(PoseStamped, topic, lambda m, n=name: self._on_pose(n, m),
                                      qos)
@@ -189,7 +189,8 @@ class FlightRecorder:
                          np.array(rows['ground_frames'], np.int64),
                          np.array(rows['onboard_frames'], np.int64), ekf=list(self.ekf),
                          target_truth=PoseTrack.from_rows(rows['target_truth']),
-                         target=PoseTrack.from_rows(rows['target']), **events)
+                         target=PoseTrack.from_rows(rows['target']),
+                         fused=PoseTrack.from_rows(rows['fused']), **events)
 
 
 def ekf_row(relay: dict[str, str]) -> list[float]:

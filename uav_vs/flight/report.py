@@ -2,12 +2,15 @@
 
 A `FlightLog` holds every pose of the flight by source (the simulator's `truth/pose`,
 the ground station's `ground/pose`, the onboard `onboard/pose`, the autopilot's
-`autopilot/odom`), the velocity commands, the camera frame stamps and the mission's
+`autopilot/odom`, the pose filter's `fused/pose`), the velocity commands, the camera frame stamps and the mission's
 events; `FlightReport.from_log` scores it:
 
 - each pose source against truth: a vision pose is stamped with its image's stamp, for
   which the simulator published the truth, so they are matched exactly by stamp; the
-  autopilot's estimate is compared with truth interpolated at its stamp;
+  autopilot's estimate and the fused one (stamped with the time it is predicted to) are
+  compared with truth interpolated at their stamps; and every source against the truth
+  at the time each pose arrived ("as received": what the controller had then, latency
+  included, the figure that compares the filter with the sources it fuses);
 - each setpoint (section 5: hold, move through setpoints): the true distance to it
   over the hold the mission accepted, as judged by the vision pose it flew on;
 - the landing: the true touchdown point's horizontal distance to the pad;
@@ -28,11 +31,14 @@ import numpy as np
 
 from uav_vs.autopilot.frames import wrap_angle
 
-SOURCES = ('ground', 'onboard', 'odom')
+SOURCES = ('ground', 'onboard', 'odom', 'fused')
 TRACKS = ('truth', *SOURCES, 'target_truth', 'target')     # the PoseTracks of a FlightLog
 LABELS = {'truth': 'simulator truth', 'ground': 'ground/pose (trinocular, section 3)',
           'onboard': 'onboard/pose (homography, section 4)',
-          'odom': 'autopilot/odom (autopilot estimate)'}
+          'odom': 'autopilot/odom (autopilot estimate)',
+          'fused': 'fused/pose (pose filter of ground, onboard)'}
+# Scored against the truth at their own stamps (image stamps); the others interpolated.
+EXACT = ('ground', 'onboard')
 
 
 class _Track:
@@ -120,6 +126,8 @@ class FlightLog:
     # on the ground (z = 0), yaw its heading; the span scored (the vehicle had caught up).
     target_truth: PoseTrack = field(default_factory=PoseTrack)
     target: PoseTrack = field(default_factory=PoseTrack)
+    # The pose filter's estimate (fused/pose), stamped with the time it is predicted to.
+    fused: PoseTrack = field(default_factory=PoseTrack)
     follow_start_ns: int | None = None
     follow_end_ns: int | None = None
     # The topics the controller and the follower subscribed to while following, by node.
@@ -173,6 +181,9 @@ class SourceScore:
     yaw_rmse_deg: float
     latency_median_ms: float         # arrival minus stamp
     latency_p95_ms: float
+    # Each pose against the truth at the time it arrived: what a consumer (the controller)
+    # had then, its latency included.
+    arrival_rmse_m: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -252,8 +263,8 @@ class FlightReport:
     @classmethod
     def from_log(cls, log: FlightLog) -> 'FlightReport':
         windows = {name: flight_window(log, name) for name in SOURCES}
-        sources = {name: score_source(getattr(log, name), log.truth, name != 'odom', *windows[name])
-                   for name in SOURCES}
+        sources = {name: score_source(getattr(log, name), log.truth, name in EXACT,
+                                      *windows[name]) for name in SOURCES}
         frames = {name: int(((stamps >= windows[name][0]) & (stamps <= windows[name][1])).sum())
                   for name, stamps in (('ground', log.ground_frames),
                                        ('onboard', log.onboard_frames))}
@@ -286,6 +297,7 @@ class FlightReport:
                        f'p95 {s.latency_p95_ms:.1f} ms' if name in frames else '')
             lines.append(f'  {name:8s} {s.samples} poses{rate}: position RMSE '
                          f'{s.position_rmse_m * 100:.2f} cm (max {s.position_max_m * 100:.2f} cm),'
+                         f' as received {s.arrival_rmse_m * 100:.2f} cm,'
                          f' yaw RMSE {s.yaw_rmse_deg:.2f} deg{latency}')
         c = self.commands
         if c.from_images:
@@ -385,12 +397,16 @@ def score_source(track: PoseTrack, truth: PoseTrack, exact: bool, start_ns: int,
         true_p, true_yaw = interpolate(truth, track.stamps[keep])
     if not keep.any():
         nan = math.nan
-        return SourceScore(0, nan, nan, nan, nan, nan)
+        return SourceScore(0, nan, nan, nan, nan, nan, nan)
     dp = np.linalg.norm(track.positions[keep] - true_p, axis=1)
     dyaw = np.degrees(wrap_angle(track.yaws[keep] - true_yaw))
     latency = (track.received[keep] - track.stamps[keep]) * 1e-6
+    arrived = keep & within(truth, track.received)
+    then, _ = interpolate(truth, track.received[arrived])
+    arrival = rms(np.linalg.norm(track.positions[arrived] - then, axis=1)) if arrived.any() \
+        else math.nan
     return SourceScore(int(keep.sum()), rms(dp), float(dp.max()), rms(dyaw),
-                       float(np.median(latency)), float(np.percentile(latency, 95)))
+                       float(np.median(latency)), float(np.percentile(latency, 95)), arrival)
 
 
 def command_latencies(log: FlightLog, source: str | None = None) -> np.ndarray:

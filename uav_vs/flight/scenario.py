@@ -14,6 +14,9 @@
     target_tracker_node,       following a target (section 5): the target found in the
     target_follower_node       onboard images, placed on the ground from ground/pose,
                                becomes the setpoint; started after the hold
+    pose_filter_node           with Configs.pose_filter (the demo's): fused/pose from both
+                               vision poses, recorded and scored beside them; the
+                               controller does not fly on it
 
 and flies the mission: the relay's `set_guided`, `arm`, `takeoff`, `set_guided` again
 (PX4 holds in AUTO.LOITER after its takeoff); the controller's
@@ -133,6 +136,7 @@ class Configs:
     sensors: Path | None = None      # a sensor profile given after `world`, e.g. SENSORS
     controller: Path = default_config_path('fuzzy_controller.yaml')
     relay: Path = default_config_path('mavlink_relay.yaml')
+    pose_filter: Path | None = None     # pose_filter_node's params file; None: not run
     ground_layout: str = DEFAULT_LAYOUT
     # The ground rig as it really is, which sim_world renders, when the ground station is
     # given another calibration in `ground` (one solved by uav_vs_calibrate); default: ground.
@@ -361,6 +365,9 @@ class _Mission:
         if self.hosts is not None:
             self._start('link_monitor_node', 'link_monitor_node', [
                 '--params-file', str(default_config_path('link_monitor.yaml'))])
+        if c.pose_filter is not None:
+            self._start('pose_filter_node', 'pose_filter_node',
+                        ['--params-file', str(c.pose_filter)])
         self._start_controller('ground')
         for sim in ('sim_world', 'sim_cameras'):
             if sim in self.procs:
