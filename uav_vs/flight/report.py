@@ -290,7 +290,8 @@ class FlightReport:
         lines.append(f'pose sources against simulator truth ({self.window}):')
         for name, s in self.sources.items():
             if not s.samples:
-                lines.append(f'  {name:8s} no samples')
+                if name != 'fused':     # none without a pose filter in the graph
+                    lines.append(f'  {name:8s} no samples')
                 continue
             rate = f' from {frames[name]} frames' if name in frames else ''
             latency = (f', latency median {s.latency_median_ms:.1f} ms, '
