@@ -81,6 +81,18 @@ def test_a_message_in_another_frame_is_refused_naming_both_frames():
         cv.check_frame(Header(frame_id='map'), 'world')
 
 
+def test_a_pose_in_another_frame_or_not_finite_is_refused():
+    q = np.array([0.0, 0.0, 0.6, 0.8])
+    position, quaternion = cv.msg_to_pose_in(
+        cv.pose_to_msg([1.0, 2.0, 3.0], q, Header(frame_id='world')), 'world')
+    assert position.tolist() == [1.0, 2.0, 3.0] and np.allclose(quaternion, q)
+    with pytest.raises(cv.MessageError, match="^frame 'map', expected 'world'$"):
+        cv.msg_to_pose_in(cv.pose_to_msg([1.0, 2.0, 3.0], q, Header(frame_id='map')), 'world')
+    with pytest.raises(cv.MessageError, match='^non-finite position$'):
+        cv.msg_to_pose_in(cv.pose_to_msg([1.0, np.nan, 3.0], q, Header(frame_id='world')),
+                          'world')
+
+
 @pytest.mark.parametrize('encoding, channels, frame_id', [('bgr8', 3, 'cam1_optical'),
                                                           ('mono8', 1, ''), ('rgba8', 4, 'abc')])
 def test_serialized_image_is_read_in_place_as_rclpy_reads_it(encoding, channels, frame_id):

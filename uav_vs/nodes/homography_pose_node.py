@@ -37,7 +37,7 @@ from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
 
 from uav_vs.control.follow import PoseHistory
-from uav_vs.ros.convert import MessageError, check_frame, msg_to_pose, pose_to_msg, stamp_to_ns
+from uav_vs.ros.convert import MessageError, msg_to_pose_in, pose_to_msg, stamp_to_ns
 from uav_vs.ros.image_input import QOS_CHOICES, ImageInput, InputLimits, stamp_params
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, run
 from uav_vs.ros.params import REQUIRED, LiveParams, Param, T, declare
@@ -130,10 +130,7 @@ class HomographyPoseNode(Node):
 
     def on_init_pose(self, msg: PoseStamped) -> None:
         try:
-            check_frame(msg.header, self.frame_id)
-            position, q = msg_to_pose(msg)
-            if not np.isfinite(position).all():
-                raise MessageError('non-finite position')
+            position, q = msg_to_pose_in(msg, self.frame_id)
         except MessageError as err:
             self.counts['malformed_init_poses'] += 1
             self.get_logger().warn(f'{self.cfg.init_pose.topic}: {err}',

@@ -29,7 +29,7 @@ from std_msgs.msg import Header
 
 from uav_vs.control.pose_filter import (FilterParams, PoseFilter, odometry_measurement,
                                         pose_measurement, rot_z)
-from uav_vs.ros.convert import (MessageError, check_frame, msg_to_odometry, msg_to_pose,
+from uav_vs.ros.convert import (MessageError, check_frame, msg_to_odometry, msg_to_pose_in,
                                 odometry_to_msg, pose_to_msg, stamp_to_ns, yaw_of,
                                 yaw_quaternion)
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, ThrottledWarnings, run
@@ -117,14 +117,10 @@ class PoseFilterNode(Node):
 
     def on_pose(self, msg: PoseStamped, topic: str, cov: np.ndarray) -> None:
         try:
-            check_frame(msg.header, self.world)
-            position, q = msg_to_pose(msg)
+            position, q = msg_to_pose_in(msg, self.world)
             yaw = yaw_of(q)
         except MessageError as err:
             self._malformed(f'{topic}: {err}')
-            return
-        if not np.isfinite(position).all():
-            self._malformed(f'{topic}: non-finite position')
             return
         self.filter.add(pose_measurement(topic, stamp_to_ns(msg.header.stamp) * 1e-9,
                                          position, yaw, cov))

@@ -32,7 +32,7 @@ from std_msgs.msg import Header
 from uav_vs.autopilot.frames import euler_to_quat
 from uav_vs.control.follow import FollowConfig, FollowStep, TargetFollower
 from uav_vs.nodes.homography_pose_node import ONBOARD_PARAMS
-from uav_vs.ros.convert import (MessageError, check_frame, msg_to_odometry, msg_to_pose,
+from uav_vs.ros.convert import (MessageError, check_frame, msg_to_odometry, msg_to_pose_in,
                                 ns_to_stamp, polygon_to_array, pose_to_msg, stamp_to_ns)
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, ThrottledWarnings, run
 from uav_vs.ros.params import Param, T, declare
@@ -102,13 +102,9 @@ class TargetFollowerNode(Node):
 
     def on_pose(self, msg: PoseStamped) -> None:
         try:
-            check_frame(msg.header, self.world)
-            position, q = msg_to_pose(msg)
+            position, q = msg_to_pose_in(msg, self.world)
         except MessageError as err:
             self._malformed(f'pose: {err}')
-            return
-        if not np.isfinite(position).all():
-            self._malformed('pose: non-finite position')
             return
         self.counts['poses'] += 1
         self.publish(self.follower.on_pose(stamp_to_ns(msg.header.stamp) * 1e-9,

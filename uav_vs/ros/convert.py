@@ -175,6 +175,16 @@ def msg_to_pose(msg: PoseStamped) -> tuple[np.ndarray, np.ndarray]:
     return np.array([p.x, p.y, p.z]), unit_quaternion(q.x, q.y, q.z, q.w)
 
 
+def msg_to_pose_in(msg: PoseStamped, frame: str) -> tuple[np.ndarray, np.ndarray]:
+    """msg_to_pose of a pose that must be stamped in `frame` with a finite position:
+    MessageError otherwise."""
+    check_frame(msg.header, frame)
+    position, q = msg_to_pose(msg)
+    if not np.isfinite(position).all():
+        raise MessageError('non-finite position')
+    return position, q
+
+
 def transform_to_msg(translation: np.ndarray, quaternion_xyzw: np.ndarray, header: Header,
                      child_frame_id: str) -> TransformStamped:
     """TransformStamped header.frame_id -> child_frame_id: the child's pose in the parent."""

@@ -145,6 +145,7 @@ SETTINGS = (
             0.0, 1e6),
 )
 
+
 @dataclass(frozen=True)
 class InitFromPoses:
     """init.mode pose_topic: where the poses come from and how close in time they must be."""
