@@ -37,11 +37,15 @@ CORE_TESTS := $(addprefix test/test_,$(addsuffix .py,body_pose calibration_error
 
 install: $(STAMP)
 
-# One recipe for both venvs: $(1) the venv, $(2) its requirements file.
+# One recipe for both venvs: $(1) the venv, $(2) its requirements file. Both install the
+# checkout in editable mode, which writes uav_vs.egg-info into it: one at a time (CI
+# installs the two venvs side by side).
 define install_venv
 	test -x $(1)/bin/python || $(PYTHON) -m venv $(1)
 	$(1)/bin/python -m pip install -q -r $(2)
-	$(1)/bin/python -m pip install -q --no-deps --no-build-isolation -e .
+	mkdir -p build
+	flock build/editable-install.lock \
+	  $(1)/bin/python -m pip install -q --no-deps --no-build-isolation -e .
 	$(1)/bin/python tools/install_ros_prefix.py
 	$(1)/bin/python tools/build_interfaces.py
 	touch $(1)/.installed
