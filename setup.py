@@ -18,6 +18,7 @@ EXECUTABLES = {
     'target_follower_node': 'uav_vs.nodes.target_follower_node:main',
     'pose_filter_node': 'uav_vs.nodes.pose_filter_node:main',
     'link_monitor_node': 'uav_vs.nodes.link_monitor_node:main',
+    'foxglove_node': 'uav_vs.nodes.foxglove_node:main',
     'make_onboard_bag': 'uav_vs.sim.onboard_bag:main',
     'fuzzy_controller_node': 'uav_vs.nodes.fuzzy_controller_node:main',
     'bag_play': 'uav_vs.nodes.bag_player:main',

@@ -1,0 +1,297 @@
+"""foxglove_node: the running graph in Foxglove or Lichtblick, over the Foxglove WebSocket
+protocol, as the C++ foxglove_bridge serves it on a full ROS install.
+
+A WebSocket server (foxglove-sdk) on `foxglove.host`:`foxglove.port` (127.0.0.1:8765 by
+default: this host only; docs/safety.md says what opening it exposes). Every
+`foxglove.discovery_period` the node looks at the graph and advertises each topic that
+`foxglove.topics` lets through (regular expressions on the full name; hidden topics,
+`/_...`, never) as a channel: message encoding `cdr`, schema `ros2msg` (the installed
+.msg files, uav_vs.bag.schemas), a channel closed when its topic goes. A topic is
+subscribed only while an app subscribes to its channel, with its publishers' reliability
+and durability (so /tf_static's latched transforms come too), and every message goes
+out as the serialized bytes it came in, stamped with the time it was received.
+
+With `foxglove.allow_services` the graph's services that `foxglove.services` lets
+through (`arm`, `land`, `controller/enable`, ...) are advertised too, and a call from
+the app is made on the ROS service and answered with its response (CDR both ways),
+within `foxglove.service_timeout`. Off (the default), the server does not offer services
+at all: a call is refused.
+
+Diagnostics every `foxglove.diagnostics_period`: the clients' subscriptions, channels,
+services and messages forwarded. Every parameter is read-only.
+"""
+import re
+import threading
+from collections import deque
+from dataclasses import dataclass
+
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
+
+from uav_vs.bag.schemas import SchemaError, message_schema, service_schemas
+from uav_vs.ros.node_main import OK, WARN, Diagnostics, ThrottledWarnings, run
+from uav_vs.ros.params import Param, ParameterError, T, declare
+from uav_vs.ros.replay import message_class
+
+try:        # no rosdep key: a ROS install from apt has it only once pip has installed it
+    import foxglove
+    from foxglove import Schema
+    from foxglove.websocket import Capability, ChannelView, Client
+except ImportError:
+    foxglove = None
+NEEDS_SDK = 'foxglove_node needs the foxglove-sdk Python package: pip install foxglove-sdk==0.30.3'
+
+PARAMS = [
+    Param('foxglove.host', T.STRING, '127.0.0.1',
+          'address the WebSocket server binds (0.0.0.0: every interface, see docs/safety.md)'),
+    Param('foxglove.port', T.INTEGER, 8765, 'TCP port of the WebSocket server (0: any free one)',
+          0, 65535),
+    Param('foxglove.topics', T.STRING_ARRAY, ['.*'],
+          'regular expressions: a topic whose full name one of them matches is advertised'),
+    Param('foxglove.allow_services', T.BOOL, False,
+          'offer the graph\'s services to the app (arm, land, ...): anyone who can connect '
+          'can then fly the vehicle'),
+    Param('foxglove.services', T.STRING_ARRAY, ['.*'],
+          'regular expressions: with allow_services, the services advertised'),
+    Param('foxglove.service_timeout', T.DOUBLE, 5.0,
+          'a service call from the app fails after this long without a response, s', 0.1, 120.0),
+    Param('foxglove.discovery_period', T.DOUBLE, 1.0,
+          'period of the look at the graph for new or gone topics and services, s', 0.1, 60.0),
+    Param('foxglove.diagnostics_period', T.DOUBLE, 1.0, 'diagnostics period, s', 0.1, 60.0),
+]
+
+
+@dataclass
+class Forwarded:
+    """One advertised topic: its channel, and its ROS subscription while an app listens."""
+
+    msgtype: str
+    channel: object             # foxglove.Channel
+    clients: set[int]
+    subscription: object | None = None
+    messages: int = 0
+
+
+class Listener:
+    """The server's callbacks (on its own thread): queued for the node's executor."""
+
+    def __init__(self, wake) -> None:
+        self.requests: deque[tuple[str, int, int]] = deque()
+        self._wake = wake
+
+    def on_subscribe(self, client: 'Client', channel: 'ChannelView') -> None:
+        self.requests.append(('subscribe', client.id, channel.id))
+        self._wake()
+
+    def on_unsubscribe(self, client: 'Client', channel: 'ChannelView') -> None:
+        self.requests.append(('unsubscribe', client.id, channel.id))
+        self._wake()
+
+
+class FoxgloveNode(Node):
+    def __init__(self) -> None:
+        super().__init__('foxglove_node')
+        if foxglove is None:
+            raise ValueError(NEEDS_SDK)
+        p = declare(self, PARAMS)
+        self.topic_patterns = _patterns(p, 'foxglove.topics')
+        self.service_patterns = _patterns(p, 'foxglove.services')
+        self.allow_services = p['foxglove.allow_services']
+        self.service_timeout = p['foxglove.service_timeout']
+        self.forwarded: dict[str, Forwarded] = {}          # by topic
+        self.by_channel: dict[int, str] = {}
+        self.advertised_services: dict[str, object] = {}   # name -> ROS client
+        self.failed: set[str] = set()                      # types without a schema, warned once
+        self.malformed_calls = 0
+        self.warnings = ThrottledWarnings(self)
+        self.wake = self.create_guard_condition(self.serve_requests)
+        self.listener = Listener(self.wake.trigger)
+        self.fox_context = foxglove.Context()
+        try:
+            self.server = foxglove.start_server(
+                name='uav_vs', host=p['foxglove.host'], port=p['foxglove.port'],
+                capabilities=[Capability.Services] if self.allow_services else [],
+                supported_encodings=['cdr'], server_listener=self.listener,
+                context=self.fox_context)
+        except Exception as err:     # the SDK raises its own error types: bind, address
+            raise ParameterError(f"foxglove.host, foxglove.port: cannot serve on "
+                                 f"{p['foxglove.host']}:{p['foxglove.port']} ({err})") from err
+        self.diag = Diagnostics(self)
+        self.create_timer(p['foxglove.discovery_period'], self.discover)
+        self.create_timer(p['foxglove.diagnostics_period'], self.publish_diagnostics)
+        self.get_logger().info(
+            f"serving ws://{p['foxglove.host']}:{self.server.port} (services "
+            f"{'offered' if self.allow_services else 'not offered'})")
+        self.discover()
+
+    # ------------------------------------------------------------ topics
+
+    def discover(self) -> None:
+        """Advertise the new topics, close the channels of the gone ones; the same for
+        the services when they are offered."""
+        present = {}
+        for topic, types in self.get_topic_names_and_types():
+            if '/_' not in topic and _matches(self.topic_patterns, topic):
+                present[topic] = types[0]
+        for topic in [t for t, f in self.forwarded.items() if present.get(t) != f.msgtype]:
+            self.close(topic)
+        for topic, msgtype in present.items():
+            if topic not in self.forwarded:
+                self.advertise(topic, msgtype)
+        if self.allow_services:
+            self.discover_services()
+
+    def advertise(self, topic: str, msgtype: str) -> None:
+        try:
+            schema = message_schema(msgtype)
+        except SchemaError as err:
+            if msgtype not in self.failed:
+                self.failed.add(msgtype)
+                self.get_logger().warn(f'{topic} not advertised: {err}')
+            return
+        channel = foxglove.Channel(
+            topic, message_encoding='cdr', context=self.fox_context,
+            schema=Schema(name=msgtype, encoding='ros2msg', data=schema.encode()))
+        self.forwarded[topic] = Forwarded(msgtype, channel, set())
+        self.by_channel[channel.id()] = topic
+
+    def close(self, topic: str) -> None:
+        f = self.forwarded.pop(topic)
+        self.by_channel.pop(f.channel.id(), None)
+        if f.subscription is not None:
+            self.destroy_subscription(f.subscription)
+        f.channel.close()
+
+    def serve_requests(self) -> None:
+        """The apps' subscriptions, taken on the executor's thread."""
+        while self.listener.requests:
+            what, client, channel = self.listener.requests.popleft()
+            topic = self.by_channel.get(channel)
+            if topic is None:
+                continue
+            f = self.forwarded[topic]
+            if what == 'subscribe':
+                f.clients.add(client)
+                if f.subscription is None:
+                    f.subscription = self.create_subscription(
+                        message_class(f.msgtype), topic, self.forwarder(f),
+                        self.publishers_qos(topic), raw=True)
+            else:
+                f.clients.discard(client)
+                if not f.clients and f.subscription is not None:
+                    self.destroy_subscription(f.subscription)
+                    f.subscription = None
+
+    def forwarder(self, f: Forwarded):
+        def forward(data: bytes) -> None:
+            f.messages += 1
+            f.channel.log(data, log_time=self.get_clock().now().nanoseconds)
+        return forward
+
+    def publishers_qos(self, topic: str) -> QoSProfile:
+        """Reliable if every publisher is, transient local if every publisher is: what
+        matches them all (as foxglove_bridge and ros2 topic echo choose)."""
+        offers = [info.qos_profile for info in self.get_publishers_info_by_topic(topic)]
+        reliable = bool(offers) and all(
+            q.reliability == ReliabilityPolicy.RELIABLE for q in offers)
+        latched = bool(offers) and all(
+            q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offers)
+        return QoSProfile(
+            depth=max(10, len(offers)),
+            reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+    # ------------------------------------------------------------ services
+
+    def discover_services(self) -> None:
+        present = {name: types[0] for name, types in self.get_service_names_and_types()
+                   if '/_' not in name and _matches(self.service_patterns, name)
+                   and not name.startswith(self.get_fully_qualified_name() + '/')}
+        gone = [name for name in self.advertised_services if name not in present]
+        if gone:
+            self.server.remove_services(gone)
+            for name in gone:
+                self.destroy_client(self.advertised_services.pop(name))
+        for name, srvtype in present.items():
+            if name not in self.advertised_services:
+                self.offer(name, srvtype)
+
+    def offer(self, name: str, srvtype: str) -> None:
+        try:
+            request, response = service_schemas(srvtype)
+        except SchemaError as err:
+            if srvtype not in self.failed:
+                self.failed.add(srvtype)
+                self.get_logger().warn(f'service {name} not offered: {err}')
+            return
+        cls = message_class(srvtype)
+        client = self.create_client(cls, name)
+        schema = foxglove.ServiceSchema(
+            srvtype,
+            request=foxglove.MessageSchema(encoding='cdr', schema=Schema(
+                name=f'{srvtype}_Request', encoding='ros2msg', data=request.encode())),
+            response=foxglove.MessageSchema(encoding='cdr', schema=Schema(
+                name=f'{srvtype}_Response', encoding='ros2msg', data=response.encode())))
+        self.server.add_services([foxglove.Service(
+            name, schema=schema, handler=self.caller(name, cls, client))])
+        self.advertised_services[name] = client
+
+    def caller(self, name: str, cls, client):
+        def call(request) -> bytes:
+            """On the server's thread: the ROS call, awaited; raising fails the app's call."""
+            try:
+                ros_request = deserialize_message(request.payload, cls.Request)
+            except Exception as err:        # rclpy raises its C++ errors as they come
+                self.malformed_calls += 1
+                self.warnings.skipped(f'malformed call of {name} from the app ({err})')
+                raise ValueError(f'{name}: the request is no {cls.__name__} in CDR') from err
+            future = client.call_async(ros_request)
+            done = threading.Event()
+            future.add_done_callback(lambda _: done.set())
+            if not done.wait(self.service_timeout):
+                future.cancel()
+                raise TimeoutError(f'{name}: no response in {self.service_timeout:g} s')
+            self.get_logger().info(f'service {name} called from the app')
+            return serialize_message(future.result())
+        return call
+
+    # ------------------------------------------------------------ diagnostics
+
+    def publish_diagnostics(self) -> None:
+        subscribed = [t for t, f in self.forwarded.items() if f.subscription is not None]
+        level = OK if self.forwarded else WARN
+        self.diag.publish(level, f'{len(subscribed)} of {len(self.forwarded)} topics '
+                                 f'forwarded', {
+            'port': self.server.port, 'channels': len(self.forwarded),
+            'subscribed': ' '.join(sorted(subscribed)),
+            'messages': sum(f.messages for f in self.forwarded.values()),
+            'services': ' '.join(sorted(self.advertised_services)),
+            'malformed_calls': self.malformed_calls,
+            'without_schema': ' '.join(sorted(self.failed))})
+
+    def destroy_node(self) -> None:
+        self.server.stop()
+        super().destroy_node()
+
+
+def _patterns(p: dict, name: str) -> list[re.Pattern]:
+    try:
+        return [re.compile(expr) for expr in p[name]]
+    except re.error as err:
+        raise ParameterError(f'{name}: expected regular expressions, got {err.pattern!r} '
+                             f'({err})') from err
+
+
+def _matches(patterns: list[re.Pattern], name: str) -> bool:
+    return any(pattern.fullmatch(name) for pattern in patterns)
+
+
+def main(args: list[str] | None = None) -> None:
+    # SingleThreadedExecutor: the server's thread wakes the node with a guard condition,
+    # which EventsExecutor (rclpy 7.1.6) does not support.
+    run(FoxgloveNode, 'foxglove_node', args, executor='single')
+
+
+if __name__ == '__main__':
+    main()
