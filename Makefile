@@ -81,7 +81,7 @@ bench: $(STAMP)
 	$(BIN)/python -m bench
 
 demo: $(STAMP)
-	$(BIN)/python -m uav_vs.demo $(if $(BAG),--bag $(BAG)) $(if $(AUTOPILOT),--autopilot $(AUTOPILOT)) $(if $(SITL),--sitl $(SITL)) $(if $(SENSORS),--sensors $(SENSORS)) $(if $(SCENARIO),--scenario $(SCENARIO)) $(if $(HOSTS),--hosts $(HOSTS)) $(if $(VEHICLES),--vehicles $(VEHICLES)) $(if $(CUT_LINK),--cut-link $(CUT_LINK))
+	$(BIN)/python -m uav_vs.demo $(if $(BAG),--bag $(BAG)) $(if $(AUTOPILOT),--autopilot $(AUTOPILOT)) $(if $(SITL),--sitl $(SITL)) $(if $(SENSORS),--sensors $(SENSORS)) $(if $(SCENARIO),--scenario $(SCENARIO)) $(if $(HOSTS),--hosts $(HOSTS)) $(if $(VEHICLES),--vehicles $(VEHICLES)) $(if $(CUT_LINK),--cut-link $(CUT_LINK)) $(if $(VIEW),--view)
 
 clean:
 	rm -rf $(VENV) $(UBUNTU_VENV) build install log *.egg-info bench-results.jsonl demo-output

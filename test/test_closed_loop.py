@@ -14,7 +14,7 @@ from rclpy.serialization import deserialize_message
 from uav_vs.bag.reader import Bag
 from uav_vs.flight.replay import replay_flight
 from uav_vs.flight.report import FlightReport
-from uav_vs.flight.scenario import Landing, Scenario, Setpoint, fly
+from uav_vs.flight.scenario import Configs, Landing, Scenario, Setpoint, fly
 from uav_vs.ros.convert import stamp_to_ns
 from uav_vs.ros.replay import message_class
 
@@ -76,10 +76,13 @@ def test_reaches_setpoint_and_lands_on_pad_on_vision_alone(tmp_path):
 def test_the_same_mission_flies_a_px4_vehicle(tmp_path):
     """The simulated vehicle behaves as PX4 (OFFBOARD only once setpoints stream, AMSL
     takeoff altitude, AUTO.LOITER after the takeoff): the unchanged relay and mission
-    hold, approach the pad on the onboard pose and land on it."""
+    hold, approach the pad on the onboard pose and land on it. The live view runs beside
+    it (`make demo VIEW=1`), on a free port."""
     scenario = Scenario('px4', 1.3, Setpoint((0.0, 0.0, 1.3), hold=1.0),
                         landing=Landing((0.5, -0.4), approach=1.1, final=0.8, hold=1.0))
-    log = fly(scenario, tmp_path, record=False, autopilot='px4')
+    viewer = tmp_path / 'foxglove.yaml'
+    viewer.write_text('/**:\n  ros__parameters:\n    foxglove:\n      port: 0\n')
+    log = fly(scenario, tmp_path, Configs(foxglove=viewer), record=False, autopilot='px4')
     report = FlightReport.from_log(log)
     print(report.summary())
     assert log.failure == '', log.failure
@@ -92,6 +95,7 @@ def test_the_same_mission_flies_a_px4_vehicle(tmp_path):
     relay = (tmp_path / 'logs' / 'mavlink_relay_node.log').read_text()
     assert 'set_guided: done (OFFBOARD, disarmed)' in relay
     assert 'set_guided: done (OFFBOARD, armed)' in relay
+    assert 'serving ws://127.0.0.1:' in (tmp_path / 'logs' / 'foxglove_node.log').read_text()
 
 
 def posable_poses(bag, sources: dict[str, tuple[str, ...]]) -> dict[str, int]:

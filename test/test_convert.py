@@ -116,6 +116,23 @@ def test_serialized_image_is_read_in_place_as_rclpy_reads_it(encoding, channels,
             cv.image_from_cdr(raw[:cut])
 
 
+
+def test_a_serialized_image_becomes_a_serialized_jpeg_of_it():
+    from rclpy.serialization import deserialize_message, serialize_message
+    y, x = np.mgrid[0:48, 0:64]
+    smooth = np.dstack([x * 4, y * 5, (x + y) * 2]).astype(np.uint8)
+    header = Header(frame_id='cam1')
+    header.stamp.sec, header.stamp.nanosec = 1_700_000_000, 5
+    raw = serialize_message(cv.bgr_to_image(smooth, header))
+    jpeg = deserialize_message(cv.image_cdr_to_jpeg_cdr(raw, 90), CompressedImage)
+    assert (jpeg.header, jpeg.format) == (header, 'jpeg')
+    decoded = cv2.imdecode(np.frombuffer(bytes(jpeg.data), np.uint8), cv2.IMREAD_COLOR)
+    assert np.abs(decoded.astype(int) - smooth).mean() < 2.0
+    with pytest.raises(cv.MessageError, match='image data too short'):
+        bad = cv.bgr_to_image(smooth, header)
+        bad.data = bad.data[:100]
+        cv.image_cdr_to_jpeg_cdr(serialize_message(bad))
+
 @pytest.mark.parametrize('n', [0, 4, 5, 8, 12, 14])
 def test_camera_from_camera_info_of_every_opencv_model(n):
     """Camera -> CameraInfo -> Camera projects as the original (cv2.projectPoints' model)."""

@@ -13,8 +13,10 @@ import subprocess
 import threading
 import time
 
+import cv2
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
 from rclpy.serialization import serialize_message
@@ -91,6 +93,7 @@ class Talker:
     pose and frame sent is kept, by stamp."""
 
     late_at = float('inf')
+    malformed_every: int | None = None      # every so many frames, one with too little data
 
     def __init__(self, node) -> None:
         self.node, self.poses, self.frames, self.calls = node, {}, {}, []
@@ -126,10 +129,15 @@ class Talker:
             self.poses[stamp] = pose.pose.position.x
             self.pose_pub.publish(pose)
             if k % 2 == 0:
-                frame = rng.integers(0, 256, (48, 64, 3), np.uint8)
-                self.frames[stamp] = frame.tobytes()
-                self.image_pub.publish(bgr_to_image(frame, Header(stamp=ns_to_stamp(stamp),
-                                                                  frame_id='cam1')))
+                header = Header(stamp=ns_to_stamp(stamp), frame_id='cam1')
+                # Smooth (JPEG keeps it), and different in every frame.
+                frame = cv2.GaussianBlur(rng.integers(0, 256, (48, 64, 3), np.uint8), (0, 0), 4)
+                image = bgr_to_image(frame, header)
+                if self.malformed_every and (k // 2) % self.malformed_every == 0:
+                    image.data = image.data[:100]
+                else:
+                    self.frames[stamp] = frame
+                self.image_pub.publish(image)
             k += 1
             time.sleep(0.05)
 
@@ -182,7 +190,7 @@ def test_the_app_sees_the_graphs_topics_as_published_and_cannot_call_a_service(
         msg = image(m['data_b64'])
         stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
         assert (msg.width, msg.height, msg.encoding) == (64, 48, 'bgr8')
-        assert msg.data.tobytes() == talker.frames[stamp]
+        assert msg.data.tobytes() == talker.frames[stamp].tobytes()
     # The static transform, latched before the node started, came to a late subscriber.
     [static] = got['messages']['/tf_static']
     [t] = decoder(channels['/tf_static'])(static['data_b64']).transforms
@@ -219,8 +227,43 @@ def test_with_allow_services_the_app_calls_the_graphs_service(probe, processes, 
     assert 'malformed call of /arm from the app' in log
 
 
+def test_for_a_slow_link_a_rate_limit_and_jpeg_frames(probe, processes, talker, ros_node):
+    """The pose limited to 5 Hz (the talker sends 20), the raw frames also as JPEG; a
+    frame that cannot be encoded is counted and skipped."""
+    talker.malformed_every = 4
+    diagnostics: list[dict] = []
+    ros_node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: diagnostics.extend(
+        {kv.key: kv.value for kv in s.values} for s in m.status
+        if s.name == '/foxglove_node'), 10)
+    url = start_node(processes, 'fox_slow', [
+        '-p', "foxglove.max_rates:=['/ground/pose=5']",
+        '-p', "foxglove.jpeg_topics:=['/cam[0-9]/image_raw']",
+        '-p', 'foxglove.diagnostics_period:=0.2'])
+    got = probe({'url': url, 'timeout_s': 30, 'settle_s': 1.0,
+                 'subscribe': {'/ground/pose': 8, '/cam1/image_raw/jpeg': 8}})
+    assert not got['timedOut'], {t: len(m) for t, m in got['messages'].items()}
+    channels = {c['topic']: c for c in got['channels']}
+    jpeg = channels['/cam1/image_raw/jpeg']
+    assert (jpeg['schemaName'], jpeg['encoding']) == ('sensor_msgs/msg/CompressedImage', 'cdr')
+
+    received = [int(m['timestamp']) for m in got['messages']['/ground/pose']]
+    assert min(np.diff(received)) >= 199_000_000, np.diff(received)    # the node's clock
+    decode = decoder(jpeg)
+    for m in got['messages']['/cam1/image_raw/jpeg']:
+        msg = decode(m['data_b64'])
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        image = cv2.imdecode(msg.data, cv2.IMREAD_COLOR)
+        assert msg.format == 'jpeg' and msg.header.frame_id == 'cam1'
+        error = np.abs(image.astype(int) - talker.frames[stamp]).mean()
+        assert error < 3.0, error        # JPEG at quality 80 of a smooth frame
+    assert wait_for(lambda: diagnostics and int(diagnostics[-1]['malformed_images']) > 0
+                    and int(diagnostics[-1]['throttled']) > 0, 10), diagnostics[-1:]
+    assert 'image data too short' in processes.log('fox_slow')
+
+
 @pytest.mark.parametrize('param, value', [('foxglove.topics', "['(']"),
-                                          ('foxglove.port', '70000')])
+                                          ('foxglove.port', '70000'),
+                                          ('foxglove.max_rates', "['/cam1/image_raw']")])
 def test_a_bad_parameter_stops_the_node_with_one_line(tmp_path, param, value):
     fatal = refused_at_start('foxglove_node', ['-p', f'{param}:={value}'], tmp_path)
     assert param in fatal, fatal
@@ -240,3 +283,12 @@ def test_every_parameter_is_in_the_yaml_with_its_default():
 
     yaml = read_params_file(REPO / 'config' / 'foxglove.yaml')
     assert yaml == {spec.name: spec.default for spec in PARAMS}
+
+
+@pytest.mark.parametrize('args', [['--hosts', '2'], ['--vehicles', '2'],
+                                  ['--autopilot', 'ardupilot-sitl'], ['--bag', 'bags/onboard']])
+def test_the_demo_refuses_a_view_it_cannot_serve(args, capsys, tmp_path):
+    from uav_vs.demo import main
+    with pytest.raises(SystemExit) as stop:
+        main(['--view', *args, '--out', str(tmp_path)])
+    assert stop.value.code == 2 and '--view watches a closed-loop flight' in capsys.readouterr().err

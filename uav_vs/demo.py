@@ -43,6 +43,9 @@ controller and relay, each through its own hold and setpoint; the summary adds, 
 vehicle, what the ROS graph and its relay showed of crosstalk (none is expected). The
 output folder has a folder per vehicle.
 
+`make demo VIEW=1` (`--view`) also runs foxglove_node (config/foxglove.yaml) and prints
+the address to open in Foxglove or Lichtblick (docs/live_view.md).
+
 `make demo BAG=<bag>` (`--bag`) replays a bag instead (the flight bag a closed-loop run
 records into the output folder, or bags/ground_trinocular, bags/onboard) through the
 open-loop part of the graph (uav_vs.flight.replay) and reports the same way.
@@ -70,7 +73,7 @@ from uav_vs.sim import netns, radio_link
 from uav_vs.sim.radio_link import LinkConfig, TwoHosts
 from uav_vs.sim.sitl_process import (HOW_TO_GET, WARM_UP_SPEEDUP, ArduCopterSitl,
                                      enter_loopback_namespace, find_binary)
-from uav_vs.vision.ground_config import default_config_path
+from uav_vs.vision.ground_config import default_config_path, read_params_file
 
 AUTOPILOTS = ('ardupilot', 'px4', 'ardupilot-sitl')
 SENSORS = ('realistic', 'ideal')     # config/sensors_<profile>.yaml
@@ -90,9 +93,9 @@ def replay(bag: Path, out: Path, rate: float) -> int:
 
 def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
                 sitl: SitlLink | None = None, hosts: TwoHosts | None = None,
-                cut_link: float = 0.0) -> int:
+                cut_link: float = 0.0, view: bool = False) -> int:
     """Fly a scenario (recording its bag into out/bag) with the `sensors` profile; print
-    and save the summary and plots."""
+    and save the summary and plots. With `view`, foxglove_node serves the graph too."""
     scenario = SCENARIOS[scenario_name]
     vehicle = f'ArduCopter SITL on {sitl.relay}' if sitl else f'simulated {autopilot}'
     if hosts is not None:
@@ -107,7 +110,13 @@ def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
     print(f'closed loop: scenario {scenario.name}, {sensors} sensors ({profile.name}), '
           f"sim_world ({vehicle}) + {' + '.join(nodes)}, recorded to {out}/bag "
           f'(logs in {out}/logs/)', flush=True)
-    configs = Configs(sensors=profile, pose_filter=default_config_path('pose_filter.yaml'))
+    viewer = default_config_path('foxglove.yaml') if view else None
+    configs = Configs(sensors=profile, pose_filter=default_config_path('pose_filter.yaml'),
+                      foxglove=viewer)
+    if viewer is not None:
+        p = read_params_file(viewer)
+        print(f"live view: open ws://{p['foxglove.host']}:{p['foxglove.port']} in Foxglove or "
+              'Lichtblick (Open connection, Foxglove WebSocket; docs/live_view.md)', flush=True)
     return report(fly(scenario, out, configs, autopilot=autopilot, sitl=sitl,
                       startup_timeout=SITL_STARTUP_S if sitl else 90.0, hosts=hosts,
                       cut_link=cut_link), out)
@@ -299,6 +308,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--cut-link', type=float, default=0.0, metavar='SECONDS',
                         help='with --hosts 2: cut the radio link for SECONDS once the '
                         'vehicle holds (default: never)')
+    parser.add_argument('--view', action='store_true',
+                        help='serve the graph to Foxglove or Lichtblick while it flies '
+                        '(foxglove_node, config/foxglove.yaml); simulated vehicle, one host')
     parser.add_argument('--out', type=Path, help='output folder (default demo-output, '
                         'demo-output/replay with --bag)')
     args = parser.parse_args(argv)
@@ -308,6 +320,10 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     out = args.out or Path('demo-output', *(['replay'] if args.bag else []))
     out.mkdir(parents=True, exist_ok=True)
+    if args.view and (args.bag is not None or args.autopilot == 'ardupilot-sitl'
+                      or args.hosts == 2 or args.vehicles == 2):
+        parser.error('--view watches a closed-loop flight of the simulated vehicle on one '
+                     'host: no --bag, ardupilot-sitl, --hosts 2 or --vehicles 2')
     if args.bag is not None:
         return replay(args.bag, out, args.rate)
     if SCENARIOS[args.scenario].gps_denied and args.autopilot != 'ardupilot-sitl':
@@ -328,7 +344,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.hosts == 2:
         return two_hosts_closed_loop(args.scenario, out, args.autopilot, args.sensors,
                                      args.cut_link)
-    return closed_loop(args.scenario, out, args.autopilot, args.sensors)
+    return closed_loop(args.scenario, out, args.autopilot, args.sensors, view=args.view)
 
 
 if __name__ == '__main__':

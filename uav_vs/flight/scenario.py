@@ -137,6 +137,7 @@ class Configs:
     controller: Path = default_config_path('fuzzy_controller.yaml')
     relay: Path = default_config_path('mavlink_relay.yaml')
     pose_filter: Path | None = None     # pose_filter_node's params file; None: not run
+    foxglove: Path | None = None        # foxglove_node's (the live view); None: not run
     ground_layout: str = DEFAULT_LAYOUT
     # The ground rig as it really is, which sim_world renders, when the ground station is
     # given another calibration in `ground` (one solved by uav_vs_calibrate); default: ground.
@@ -368,6 +369,8 @@ class _Mission:
         if c.pose_filter is not None:
             self._start('pose_filter_node', 'pose_filter_node',
                         ['--params-file', str(c.pose_filter)])
+        if c.foxglove is not None:
+            self._start('foxglove_node', 'foxglove_node', ['--params-file', str(c.foxglove)])
         self._start_controller('ground')
         for sim in ('sim_world', 'sim_cameras'):
             if sim in self.procs:

@@ -23,13 +23,15 @@ services and messages forwarded. Every parameter is read-only.
 import re
 import threading
 from collections import deque
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 
 from uav_vs.bag.schemas import SchemaError, message_schema, service_schemas
+from uav_vs.ros.convert import MessageError, image_cdr_to_jpeg_cdr
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, ThrottledWarnings, run
 from uav_vs.ros.params import Param, ParameterError, T, declare
 from uav_vs.ros.replay import message_class
@@ -56,21 +58,40 @@ PARAMS = [
           'regular expressions: with allow_services, the services advertised'),
     Param('foxglove.service_timeout', T.DOUBLE, 5.0,
           'a service call from the app fails after this long without a response, s', 0.1, 120.0),
+    Param('foxglove.max_rates', T.STRING_ARRAY, [],
+          'TOPIC=HZ entries (TOPIC a regular expression): at most HZ messages a second are '
+          'forwarded on a topic it matches, the first of each period (a slow link)'),
+    Param('foxglove.jpeg_topics', T.STRING_ARRAY, [],
+          'regular expressions: a sensor_msgs/Image topic one matches is also served as '
+          '<topic>/jpeg, each frame re-encoded as a JPEG CompressedImage (a slow link)'),
+    Param('foxglove.jpeg_quality', T.INTEGER, 80, 'quality of the re-encoded JPEG frames',
+          1, 100),
     Param('foxglove.discovery_period', T.DOUBLE, 1.0,
           'period of the look at the graph for new or gone topics and services, s', 0.1, 60.0),
     Param('foxglove.diagnostics_period', T.DOUBLE, 1.0, 'diagnostics period, s', 0.1, 60.0),
 ]
 
 
+IMAGE, COMPRESSED = 'sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage'
+JPEG_SUFFIX = '/jpeg'
+
+
 @dataclass
 class Forwarded:
-    """One advertised topic: its channel, and its ROS subscription while an app listens."""
+    """One advertised channel: the ROS topic it serves (of type `msgtype`), re-encoded as
+    JPEG or not, at most one message every `period_ns`; its ROS subscription while an
+    app listens."""
 
+    source: str
     msgtype: str
     channel: object             # foxglove.Channel
-    clients: set[int]
+    jpeg: bool = False
+    period_ns: int = 0
+    clients: set[int] = field(default_factory=set)
     subscription: object | None = None
+    last_ns: int | None = None
     messages: int = 0
+    throttled: int = 0
 
 
 class Listener:
@@ -97,13 +118,16 @@ class FoxgloveNode(Node):
         p = declare(self, PARAMS)
         self.topic_patterns = _patterns(p, 'foxglove.topics')
         self.service_patterns = _patterns(p, 'foxglove.services')
+        self.jpeg_patterns = _patterns(p, 'foxglove.jpeg_topics')
+        self.jpeg_quality = p['foxglove.jpeg_quality']
+        self.max_rates = _rates(p['foxglove.max_rates'])
         self.allow_services = p['foxglove.allow_services']
         self.service_timeout = p['foxglove.service_timeout']
         self.forwarded: dict[str, Forwarded] = {}          # by topic
         self.by_channel: dict[int, str] = {}
         self.advertised_services: dict[str, object] = {}   # name -> ROS client
         self.failed: set[str] = set()                      # types without a schema, warned once
-        self.malformed_calls = 0
+        self.malformed_calls = self.malformed_images = 0
         self.warnings = ThrottledWarnings(self)
         self.wake = self.create_guard_condition(self.serve_requests)
         self.listener = Listener(self.wake.trigger)
@@ -134,30 +158,39 @@ class FoxgloveNode(Node):
         for topic, types in self.get_topic_names_and_types():
             if '/_' not in topic and _matches(self.topic_patterns, topic):
                 present[topic] = types[0]
-        for topic in [t for t, f in self.forwarded.items() if present.get(t) != f.msgtype]:
-            self.close(topic)
+        for name in [n for n, f in self.forwarded.items() if present.get(f.source) != f.msgtype]:
+            self.close(name)
         for topic, msgtype in present.items():
             if topic not in self.forwarded:
-                self.advertise(topic, msgtype)
+                self.advertise(topic, topic, msgtype)
+            jpeg = topic + JPEG_SUFFIX
+            if (msgtype == IMAGE and _matches(self.jpeg_patterns, topic)
+                    and jpeg not in present and jpeg not in self.forwarded):
+                self.advertise(jpeg, topic, msgtype)
         if self.allow_services:
             self.discover_services()
 
-    def advertise(self, topic: str, msgtype: str) -> None:
+    def advertise(self, name: str, source: str, msgtype: str) -> None:
+        """Channel `name` serving topic `source`: the same messages, or (another name) its
+        frames as JPEG."""
+        served = msgtype if name == source else COMPRESSED
         try:
-            schema = message_schema(msgtype)
+            schema = message_schema(served)
         except SchemaError as err:
-            if msgtype not in self.failed:
-                self.failed.add(msgtype)
-                self.get_logger().warn(f'{topic} not advertised: {err}')
+            if served not in self.failed:
+                self.failed.add(served)
+                self.get_logger().warn(f'{name} not advertised: {err}')
             return
         channel = foxglove.Channel(
-            topic, message_encoding='cdr', context=self.fox_context,
-            schema=Schema(name=msgtype, encoding='ros2msg', data=schema.encode()))
-        self.forwarded[topic] = Forwarded(msgtype, channel, set())
-        self.by_channel[channel.id()] = topic
+            name, message_encoding='cdr', context=self.fox_context,
+            schema=Schema(name=served, encoding='ros2msg', data=schema.encode()))
+        rate = next((hz for pattern, hz in self.max_rates if pattern.fullmatch(name)), None)
+        self.forwarded[name] = Forwarded(source, msgtype, channel, jpeg=name != source,
+                                         period_ns=round(1e9 / rate) if rate else 0)
+        self.by_channel[channel.id()] = name
 
-    def close(self, topic: str) -> None:
-        f = self.forwarded.pop(topic)
+    def close(self, name: str) -> None:
+        f = self.forwarded.pop(name)
         self.by_channel.pop(f.channel.id(), None)
         if f.subscription is not None:
             self.destroy_subscription(f.subscription)
@@ -167,16 +200,16 @@ class FoxgloveNode(Node):
         """The apps' subscriptions, taken on the executor's thread."""
         while self.listener.requests:
             what, client, channel = self.listener.requests.popleft()
-            topic = self.by_channel.get(channel)
-            if topic is None:
+            name = self.by_channel.get(channel)
+            if name is None:
                 continue
-            f = self.forwarded[topic]
+            f = self.forwarded[name]
             if what == 'subscribe':
                 f.clients.add(client)
                 if f.subscription is None:
                     f.subscription = self.create_subscription(
-                        message_class(f.msgtype), topic, self.forwarder(f),
-                        self.publishers_qos(topic), raw=True)
+                        message_class(f.msgtype), f.source, self.forwarder(f),
+                        self.publishers_qos(f.source), raw=True)
             else:
                 f.clients.discard(client)
                 if not f.clients and f.subscription is not None:
@@ -185,8 +218,22 @@ class FoxgloveNode(Node):
 
     def forwarder(self, f: Forwarded):
         def forward(data: bytes) -> None:
+            received = self.get_clock().now().nanoseconds
+            if f.period_ns:
+                now = time.monotonic_ns()
+                if f.last_ns is not None and now - f.last_ns < f.period_ns:
+                    f.throttled += 1
+                    return
+                f.last_ns = now
+            if f.jpeg:
+                try:
+                    data = image_cdr_to_jpeg_cdr(data, self.jpeg_quality)
+                except MessageError as err:
+                    self.malformed_images += 1
+                    self.warnings.skipped(f'{f.source}: {err}')
+                    return
             f.messages += 1
-            f.channel.log(data, log_time=self.get_clock().now().nanoseconds)
+            f.channel.log(data, log_time=received)
         return forward
 
     def publishers_qos(self, topic: str) -> QoSProfile:
@@ -267,6 +314,8 @@ class FoxgloveNode(Node):
             'subscribed': ' '.join(sorted(subscribed)),
             'messages': sum(f.messages for f in self.forwarded.values()),
             'services': ' '.join(sorted(self.advertised_services)),
+            'throttled': sum(f.throttled for f in self.forwarded.values()),
+            'malformed_images': self.malformed_images,
             'malformed_calls': self.malformed_calls,
             'without_schema': ' '.join(sorted(self.failed))})
 
@@ -281,6 +330,23 @@ def _patterns(p: dict, name: str) -> list[re.Pattern]:
     except re.error as err:
         raise ParameterError(f'{name}: expected regular expressions, got {err.pattern!r} '
                              f'({err})') from err
+
+
+def _rates(entries: list[str]) -> list[tuple[re.Pattern, float]]:
+    """'TOPIC=HZ' entries: (the topic's pattern, its rate)."""
+    rates = []
+    for entry in entries:
+        expr, _, hz = entry.rpartition('=')
+        try:
+            rate = float(hz)
+            pattern = re.compile(expr)
+        except (ValueError, re.error):
+            rate = 0.0
+        if not expr or not 0.0 < rate < float('inf'):
+            raise ParameterError(f'foxglove.max_rates: expected TOPIC=HZ entries (a regular '
+                                 f'expression and a positive rate), got {entry!r}')
+        rates.append((pattern, rate))
+    return rates
 
 
 def _matches(patterns: list[re.Pattern], name: str) -> bool:

@@ -15,7 +15,7 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import (Point32, Polygon, PolygonStamped, PoseStamped, TransformStamped,
                                TwistStamped)
 from nav_msgs.msg import Odometry
-from rclpy.serialization import deserialize_message
+from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
@@ -140,6 +140,13 @@ def bgr_to_compressed(img: np.ndarray, header: Header, quality: int = 90) -> Com
     msg = CompressedImage(header=header, format='jpeg')
     msg.data = buf.tobytes()
     return msg
+
+
+def image_cdr_to_jpeg_cdr(raw: bytes, quality: int = 80) -> bytes:
+    """A serialized sensor_msgs/Image as a serialized JPEG CompressedImage, same header
+    (a slow link's copy of a camera stream). Raises MessageError as image_to_bgr does."""
+    msg = image_from_cdr(raw)
+    return serialize_message(bgr_to_compressed(image_to_bgr(msg), msg.header, quality))
 
 
 def points_to_polygon(points: np.ndarray, header: Header) -> PolygonStamped:
