@@ -117,6 +117,20 @@ def test_serialized_image_is_read_in_place_as_rclpy_reads_it(encoding, channels,
 
 
 
+def test_outlines_become_one_line_list_marker():
+    from visualization_msgs.msg import ImageMarker
+    header = Header(frame_id='cam1')
+    square = cv.rect_corners(10, 20, 4, 2)
+    marker = cv.outlines_to_marker([square, square + 100], header, (1, 0.5, 0, 1), ns='x')
+    assert (marker.header, marker.ns, marker.type) == (header, 'x', ImageMarker.LINE_LIST)
+    drawn = np.array([(p.x, p.y) for p in marker.points]).reshape(8, 2, 2)
+    np.testing.assert_array_equal(drawn[:4, 0], square)            # each edge from a corner
+    np.testing.assert_array_equal(drawn[:4, 1], np.roll(square, -1, axis=0))   # to the next
+    np.testing.assert_array_equal(drawn[4:, 0], square + 100)
+    assert (marker.outline_color.r, marker.outline_color.g) == (1.0, 0.5)
+    assert cv.outlines_to_marker([], header, (1, 1, 1, 1)).points == []
+
+
 def test_a_serialized_image_becomes_a_serialized_jpeg_of_it():
     from rclpy.serialization import deserialize_message, serialize_message
     y, x = np.mgrid[0:48, 0:64]

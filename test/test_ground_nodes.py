@@ -17,6 +17,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PolygonStamped, PoseStamped
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
+from visualization_msgs.msg import ImageMarker
 
 from conftest import REPO, wait_for
 from uav_vs.flight.ground_replay import DEFAULT_LAYOUT, replay_ground_bag
@@ -166,15 +167,30 @@ def test_camshift_node_takes_a_landmark_colour_from_a_sample_image(tmp_path, ros
                                 '-p', f"landmarks.red.sample:={tmp_path / 'red.png'}"],
               label='cam1')
     out: list[PolygonStamped] = []
+    windows: list[ImageMarker] = []
     ros_node.create_subscription(PolygonStamped, '/cam1/landmarks', out.append, 10)
+    marker_sub = ros_node.create_subscription(ImageMarker, '/cam1/landmark_windows',
+                                              windows.append, 10)
     pub = ros_node.create_publisher(Image, '/cam1/image_raw', 10)
-    assert wait_for(lambda: pub.get_subscription_count() > 0, 30)
+    assert wait_for(lambda: pub.get_subscription_count() > 0
+                    and marker_sub.get_publisher_count() > 0, 30)
     images, info = scene.render(figure_eight(3.0))
     assert info.visible[0, 0] > 0.98
     pub.publish(bgr_to_image(images[0], Header(stamp=ns_to_stamp(1), frame_id='cam1_optical')))
-    assert wait_for(lambda: len(out) == 1, 10)
+    assert wait_for(lambda: len(out) == 1 and len(windows) == 1, 10)
     assert np.linalg.norm(polygon_to_array(out[0])[0, :2] - info.centroid[0, 0]) < 1.5
     assert f"landmark red: colour model from {tmp_path / 'red.png'}" in processes.log('cam1')
+    # The annotation: one window (4 edges) around each landmark found, same header.
+    [marker] = windows
+    found = polygon_to_array(out[0])
+    found = found[~np.isnan(found[:, 0]), :2]
+    edges = np.array([(p.x, p.y) for p in marker.points]).reshape(-1, 4, 2, 2)
+    assert (marker.header, marker.type) == (out[0].header, ImageMarker.LINE_LIST)
+    assert len(edges) == len(found) > 0
+    for (x, y), window in zip(found, edges):
+        corners = window[:, 0]
+        assert corners[:, 0].min() <= x <= corners[:, 0].max()
+        assert corners[:, 1].min() <= y <= corners[:, 1].max()
 
 
 @pytest.mark.parametrize('sample, expected', [

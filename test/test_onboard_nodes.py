@@ -18,6 +18,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CompressedImage, Image
 from std_msgs.msg import Bool, Header
+from visualization_msgs.msg import ImageMarker
 
 from conftest import REPO, wait_for
 from uav_vs.graph import executable, stop
@@ -333,17 +334,25 @@ def test_target_found_at_a_known_homography_and_not_where_it_is_absent(ros_node,
     ros_node.create_subscription(PolygonStamped, '/onboard/target', targets.append, RELIABLE)
     ros_node.create_subscription(Bool, '/onboard/target_found', lambda m: found.append(m.data),
                                  RELIABLE)
+    outlines: list[ImageMarker] = []
+    outline_sub = ros_node.create_subscription(ImageMarker, '/onboard/target_outline',
+                                               outlines.append, RELIABLE)
     pub = ros_node.create_publisher(CompressedImage, '/onboard/image_raw/compressed', RELIABLE)
-    assert wait_for(lambda: pub.get_subscription_count() > 0, 30)
+    assert wait_for(lambda: pub.get_subscription_count() > 0
+                    and outline_sub.get_publisher_count() > 0, 30)
     pub.publish(bgr_to_compressed(scene, header(0)))
     pub.publish(bgr_to_compressed(ground, header(1)))
-    assert wait_for(lambda: len(found) == 2, 30), found
+    assert wait_for(lambda: len(found) == 2 and len(outlines) == 2, 30), found
     assert found == [True, False] and len(targets) == 1
     assert targets[0].header.stamp == header(0).stamp
     assert targets[0].header.frame_id == 'onboard_camera_optical'
     got = polygon_to_array(targets[0])
     assert got.shape == (5, 3)
     assert np.abs(got[:, :2] - expected).max() < 2.0, got[:, :2] - expected
+    # The annotation: the outline through the four corners found, none where none was.
+    drawn = np.array([(p.x, p.y) for p in outlines[0].points]).reshape(4, 2, 2)
+    np.testing.assert_allclose(drawn[:, 0], got[:4, :2])
+    assert outlines[0].header == targets[0].header and outlines[1].points == []
 
 
 def start_in(cwd: Path, ros_args: list[str]) -> tuple[subprocess.Popen, Path]:

@@ -4,9 +4,12 @@ One process per camera, in the camera's namespace (`-r __ns:=/cam1 -p camera:=ca
 Subscribes `image_raw` (sensor_msgs/Image) and `image_raw/compressed`.
 Publishes `landmarks` (geometry_msgs/PolygonStamped, the image's header: one point per
 landmark in `landmarks.names` order, x, y = raw pixel centroid, z = confidence 0..1,
-all NaN when the landmark is not found), `debug_image` (when `camshift.debug_image`)
-and /diagnostics (frames, malformed, stale and future images, restarts, errors,
-landmarks found, detection and publishing time of the last frame `process_ms`).
+all NaN when the landmark is not found), `landmark_windows` (visualization_msgs/
+ImageMarker, the image's header: the final CamShift window of every landmark found, the
+annotation a viewer draws over the image; only while someone subscribes), `debug_image`
+(when `camshift.debug_image`) and /diagnostics (frames, malformed, stale and future
+images, restarts, errors, landmarks found, detection and publishing time of the last
+frame `process_ms`).
 Images come through uav_vs.ros.image_input; when time goes back (a new replay) the
 detector forgets its windows and histogram and searches the whole image again.
 """
@@ -18,8 +21,9 @@ import numpy as np
 from geometry_msgs.msg import PolygonStamped
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
+from visualization_msgs.msg import ImageMarker
 
-from uav_vs.ros.convert import bgr_to_image, points_to_polygon
+from uav_vs.ros.convert import bgr_to_image, outlines_to_marker, points_to_polygon, rect_corners
 from uav_vs.ros.ground_params import declare_cameras, declare_landmarks
 from uav_vs.ros.image_files import read_image
 from uav_vs.ros.image_input import QOS_CHOICES, ImageInput, InputLimits, stamp_params
@@ -29,6 +33,7 @@ from uav_vs.vision.colour_model import models_from_params
 from uav_vs.vision.landmarks import DetectorParams, LandmarkDetector, centroids
 
 _D = DetectorParams()
+WINDOW_RGBA = (1.0, 1.0, 0.0, 1.0)     # yellow, as in debug_image
 DETECTOR_PARAMS = [  # all live: a new detector takes over the windows of the old one
     Param('camshift.hue_bins', T.INTEGER, _D.hue_bins, 'H-S histogram bins over hue 0..179',
           1, 180, live=True),
@@ -95,6 +100,7 @@ class CamshiftNode(QuietPublisherNode):
         self.detector = LandmarkDetector(
             models_from_params(self.colours, params.bins, self.samples), params)
         self.pub = self.create_publisher(PolygonStamped, 'landmarks', 10)
+        self.windows_pub = self.create_publisher(ImageMarker, 'landmark_windows', 10)
         self.debug_pub = (self.create_publisher(Image, 'debug_image', 1)
                           if p['camshift.debug_image'] else None)
         self.input = ImageInput(self, 'image_raw', p['camshift.image_qos'], self.on_image, size,
@@ -136,9 +142,12 @@ class CamshiftNode(QuietPublisherNode):
         detections = self.detector.detect(bgr)
         xy, conf = centroids(detections)
         points = np.column_stack([xy, np.where(np.isnan(xy[:, 0]), np.nan, conf)])
-        self.pub.publish(points_to_polygon(points, Header(stamp=header.stamp,
-                                                          frame_id=header.frame_id
-                                                          or self.frame_id)))
+        out_header = Header(stamp=header.stamp, frame_id=header.frame_id or self.frame_id)
+        self.pub.publish(points_to_polygon(points, out_header))
+        if self.windows_pub.get_subscription_count():
+            self.windows_pub.publish(outlines_to_marker(
+                [rect_corners(*d.window) for d in detections if d.found], out_header,
+                WINDOW_RGBA, ns='landmarks'))
         self.process_ms = (time.perf_counter() - t0) * 1e3
         self.frames += 1
         self.found += [d.found for d in detections]

@@ -16,7 +16,10 @@ points in the image's raw pixel coordinates (x right, y down, z = 0): the templa
 outer corners (0, 0), (w, 0), (w, h), (0, h) (top-left, top-right, bottom-right,
 bottom-left) mapped into the image, then the target's centre (the template centre
 (w/2, h/2) through the homography, not the corners' mean);
-`onboard/target_found` (std_msgs/Bool) for every frame processed, true or false; and
+`onboard/target_found` (std_msgs/Bool) for every frame processed, true or false;
+`onboard/target_outline` (visualization_msgs/ImageMarker, the image's header: the
+target's outline, empty when it is not found; the annotation a viewer draws over the
+image, only while someone subscribes); and
 /diagnostics (frames, found, not found, malformed, stale and future images, restarts,
 errors, inliers, reason). A frame without the target publishes nothing on
 onboard/target: why is the diagnostics' message and, every 5 s at most, a warning in
@@ -30,8 +33,9 @@ import numpy as np
 from geometry_msgs.msg import PolygonStamped
 from rclpy.node import Node
 from std_msgs.msg import Bool, Header
+from visualization_msgs.msg import ImageMarker
 
-from uav_vs.ros.convert import points_to_polygon
+from uav_vs.ros.convert import outlines_to_marker, points_to_polygon
 from uav_vs.ros.image_files import read_image
 from uav_vs.ros.image_input import QOS_CHOICES, ImageInput, InputLimits, stamp_params
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, run
@@ -39,6 +43,8 @@ from uav_vs.ros.params import LiveParams, Param, ParameterError, T, declare
 from uav_vs.vision.features import KINDS
 from uav_vs.vision.homography import DEFAULT_METHOD, METHODS
 from uav_vs.vision.target_tracking import PlanarTargetTracker
+
+OUTLINE_RGBA = (0.0, 1.0, 0.0, 1.0)     # green
 
 PARAMS = [  # the tracker's: live, a new tracker is built from them (the template file read again)
     Param('target.template', T.STRING, description=(
@@ -86,6 +92,7 @@ class TargetTrackerNode(Node):
         width, height = self.tracker.corners[2]
         self.target_pub = self.create_publisher(PolygonStamped, 'onboard/target', 10)
         self.found_pub = self.create_publisher(Bool, 'onboard/target_found', 10)
+        self.outline_pub = self.create_publisher(ImageMarker, 'onboard/target_outline', 10)
         self.images = ImageInput(self, 'onboard/image_raw', p['target.image_qos'], self.on_frame,
                                  limits=InputLimits.of(p, 'target'))
         self.counts = dict(frames=0, found=0, not_found=0)
@@ -119,6 +126,9 @@ class TargetTrackerNode(Node):
             self.get_logger().warn(f'target not found: {result.reason}',
                                    throttle_duration_sec=5.0)
         self.found_pub.publish(Bool(data=bool(result.ok)))
+        if self.outline_pub.get_subscription_count():
+            self.outline_pub.publish(outlines_to_marker(
+                [result.corners] if result.ok else [], header, OUTLINE_RGBA, ns='target'))
 
     def publish_diagnostics(self) -> None:
         if self.last['reason']:

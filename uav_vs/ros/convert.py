@@ -8,16 +8,18 @@ deserialization copies the pixels three times.
 import math
 import struct
 from dataclasses import dataclass
+from typing import Sequence
 
 import cv2
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import (Point32, Polygon, PolygonStamped, PoseStamped, TransformStamped,
-                               TwistStamped)
+from geometry_msgs.msg import (Point, Point32, Polygon, PolygonStamped, PoseStamped,
+                               TransformStamped, TwistStamped)
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-from std_msgs.msg import Header
+from std_msgs.msg import ColorRGBA, Header
+from visualization_msgs.msg import ImageMarker
 
 from uav_vs.vision.camera import CalibrationError, Camera
 
@@ -147,6 +149,26 @@ def image_cdr_to_jpeg_cdr(raw: bytes, quality: int = 80) -> bytes:
     (a slow link's copy of a camera stream). Raises MessageError as image_to_bgr does."""
     msg = image_from_cdr(raw)
     return serialize_message(bgr_to_compressed(image_to_bgr(msg), msg.header, quality))
+
+
+def outlines_to_marker(outlines: Sequence[np.ndarray], header: Header, rgba: Sequence[float],
+                       ns: str = '') -> ImageMarker:
+    """Closed outlines in pixels ((k, 2) arrays: a window's corners, a target's) as one
+    visualization_msgs/ImageMarker LINE_LIST, the annotation an image viewer (Foxglove,
+    Lichtblick, rqt) draws over the image of the same stamp."""
+    segments = [(p, q) for outline in outlines
+                for p, q in zip(outline, np.roll(outline, -1, axis=0))]
+    return ImageMarker(header=header, ns=ns, type=ImageMarker.LINE_LIST,
+                       action=ImageMarker.ADD, scale=2.0, outline_color=ColorRGBA(
+                           r=float(rgba[0]), g=float(rgba[1]), b=float(rgba[2]),
+                           a=float(rgba[3])),
+                       points=[Point(x=float(x), y=float(y)) for seg in segments
+                               for x, y in seg])
+
+
+def rect_corners(x: float, y: float, w: float, h: float) -> np.ndarray:
+    """An axis-aligned pixel window's four corners, (4, 2)."""
+    return np.array([(x, y), (x + w, y), (x + w, y + h), (x, y + h)], np.float64)
 
 
 def points_to_polygon(points: np.ndarray, header: Header) -> PolygonStamped:
