@@ -186,3 +186,29 @@ def test_on_poses_alone_it_is_filterpys_kalman_filter():
         ours.add(m)
     est = ours.estimate(ms[-1].stamp)
     assert np.allclose(est.x, ref.x, atol=1e-10) and np.allclose(est.P, ref.P, atol=1e-12)
+
+
+@pytest.mark.parametrize('reset_after', [1.0, math.inf])
+def test_a_filter_locked_out_by_its_gate_starts_again_from_the_measurements(reset_after):
+    """A model too confident for what the poses do (they step 0.4 m at 3 s, as when a
+    camera is knocked): every pose after the step fails the gate. With `reset_after` the
+    filter starts again from the first pose more than that after the last one applied,
+    counts it, and follows the poses; without, it coasts away on its own."""
+    rng = np.random.default_rng(5)
+    step = np.array([0.4, 0.0, 0.0])
+    ms = [pose_measurement('ground', m.stamp, m.z[:3] + (step if m.stamp >= 3.0 else 0.0),
+                           m.z[3], m.R) for m in poses('ground', 30, 0.02, 0.02, 6.0, rng)]
+    f = PoseFilter(FilterParams(accel_sigma=0.05, yaw_accel_sigma=0.1,
+                                reset_after=reset_after))
+    results = [f.add(m) for m in ms]
+    stepped = [r for r, m in zip(results, ms) if m.stamp >= 3.0]   # all gated until a reset
+    error = np.linalg.norm(f.estimate(6.0).position - (truth(6.0)[0] + step))
+    if reset_after == math.inf:     # refused 1.5 s and more, then taken as the filter drifts
+        assert stepped[:45] == ['gated'] * 45 and f.counts['ground'].resets == 0
+        assert error > 0.25
+        return
+    k = results.index('reset')
+    last_applied = max(m.stamp for m in ms if m.stamp < 3.0)
+    assert ms[k - 1].stamp <= last_applied + reset_after < ms[k].stamp
+    assert f.counts['ground'].resets == 1 and set(results[k + 1:]) == {'applied'}
+    assert error < 0.05

@@ -18,6 +18,14 @@ put in its place and every later one applied again (re-propagation), so a late s
 weighs exactly as if it had arrived on time. An innovation beyond the Mahalanobis gate
 (chi-square, `gate_probability`) is refused and counted. Nothing arrives from a source
 that stops: the covariance grows with the process noise for as long as it is gone.
+
+A gate can lock the filter out: once its covariance is smaller than the sources' real
+errors (a motion model too confident for a manoeuvre, a source whose bias moved), every
+measurement is refused and the estimate coasts away on its own. So when measurements
+keep coming and none has been applied for `reset_after` s (by their stamps), the filter
+starts again from the one that arrived last (counted as a reset of its source), as
+PX4's EKF2 resets its position to the vision or GPS one after its innovation checks have
+failed for a while.
 """
 from __future__ import annotations
 
@@ -42,6 +50,7 @@ class FilterParams:
     yaw_accel_sigma: float = 1.0      # rad/s^2
     gate_probability: float = 0.999   # innovations beyond this chi-square quantile are refused
     history: float = 1.0              # s of measurements kept for late ones
+    reset_after: float = 1.0          # s of refused measurements, none applied: start again
     initial_velocity_sigma: float = 1.0    # m/s, before any velocity is measured
     initial_rate_sigma: float = 1.0        # rad/s
 
@@ -63,6 +72,7 @@ class SourceCounts:
     applied: int = 0
     gated: int = 0          # refused by the Mahalanobis gate
     too_old: int = 0        # older than the history kept
+    resets: int = 0         # the filter started again from one of its measurements
     last_stamp: float = -math.inf
 
 
@@ -124,13 +134,12 @@ class PoseFilter:
         return bool(self._states)
 
     def add(self, m: Measurement) -> str:
-        """Apply `m` at its stamp: 'applied', 'gated', 'too_old' or 'initialised'."""
+        """Apply `m` at its stamp: 'applied', 'gated', 'too_old', 'initialised' or 'reset'
+        (refused, but none applied for `reset_after`: the filter starts again from it)."""
         counts = self.counts.setdefault(m.source, SourceCounts())
         counts.last_stamp = max(counts.last_stamp, m.stamp)
         if not self._states:
-            self._states.append(self._initial(m))
-            self._stamps.append(m.stamp)
-            self._measurements.append(m)
+            self._start(m)
             counts.applied += 1
             return 'initialised'
         newest = self._stamps[-1]
@@ -142,6 +151,10 @@ class PoseFilter:
         after = self._update(before, self._stamps[k - 1], m)
         if after is None:
             counts.gated += 1
+            if m.stamp - newest > self.params.reset_after:
+                self._start(m)
+                counts.resets += 1
+                return 'reset'
             return 'gated'
         counts.applied += 1
         self._stamps.insert(k, m.stamp)
@@ -162,6 +175,11 @@ class PoseFilter:
         k = max(bisect.bisect_right(self._stamps, stamp), 1)
         x, P_ = self._predict(*self._states[k - 1], stamp - self._stamps[k - 1])
         return Estimate(stamp, x, P_)
+
+    def _start(self, m: Measurement) -> None:
+        """Forget everything; the state is `m`'s."""
+        self._stamps[:], self._measurements[:] = [m.stamp], [m]
+        self._states[:] = [self._initial(m)]
 
     # ---------------------------------------------------------------- the model
     def _initial(self, m: Measurement) -> tuple[np.ndarray, np.ndarray]:

@@ -13,7 +13,8 @@ that time: `fused/odom` (nav_msgs/Odometry, pose in `world_frame`, twist in
 `body_frame`, with the filter's covariances; roll and pitch, which it does not estimate,
 carry a variance of 1e6) and `fused/pose` (PoseStamped, level, for fuzzy_controller_node:
 `-p controller.pose_topic:=fused/pose`), and /diagnostics: per source the measurements
-applied, refused by the gate, too old, and the age of the newest. Nothing is published
+applied, refused by the gate, too old, the resets the filter started from it (none
+applied for `pose_filter.reset_after` s), and the age of the newest. Nothing is published
 before the first measurement or when the newest is more than `pose_filter.timeout` s
 behind the clock: a consumer sees the estimate go stale, as it would a vision pose.
 A malformed message (a frame other than `world_frame`, no rotation, non-finite numbers)
@@ -64,6 +65,9 @@ PARAMS = [
     Param('pose_filter.history', T.DOUBLE, _F.history,
           'a measurement up to this much older than the newest is applied in its place, s',
           0.0, 10.0),
+    Param('pose_filter.reset_after', T.DOUBLE, _F.reset_after,
+          'measurements refused this long, none applied: the filter starts again from the '
+          'newest, s', 0.05, 60.0),
     Param('pose_filter.rate', T.DOUBLE, 50.0, 'publishing rate, Hz', 1.0, 1000.0),
     Param('pose_filter.timeout', T.DOUBLE, 0.5, 'nothing is published while the newest '
           "measurement is further behind the node's clock, s", 0.01, 60.0),
@@ -89,7 +93,8 @@ class PoseFilterNode(Node):
         self.timeout = p['pose_filter.timeout']
         self.filter = PoseFilter(FilterParams(
             p['pose_filter.accel_sigma'], p['pose_filter.yaw_accel_sigma'],
-            p['pose_filter.gate_probability'], p['pose_filter.history']))
+            p['pose_filter.gate_probability'], p['pose_filter.history'],
+            reset_after=p['pose_filter.reset_after']))
         for topic, sigma, yaw_sigma in zip(topics, p['pose_filter.position_sigmas'],
                                            p['pose_filter.yaw_sigmas']):
             cov = np.diag([sigma ** 2] * 3 + [yaw_sigma ** 2])
@@ -174,6 +179,7 @@ class PoseFilterNode(Node):
             values[f'{source}.applied'] = c.applied
             values[f'{source}.gated'] = c.gated
             values[f'{source}.too_old'] = c.too_old
+            values[f'{source}.resets'] = c.resets
             values[f'{source}.age'] = f'{t - c.last_stamp:.3f}'
         if not self.filter.initialised:
             level, message = WARN, 'no measurement yet'
