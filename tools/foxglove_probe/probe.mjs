@@ -88,7 +88,16 @@ client.on("advertiseServices", (services) => {
   out.services.push(...services);
   call();
 });
-client.on("status", (status) => out.statuses.push(status));
+client.on("status", (status) => {
+  out.statuses.push(status);
+  // foxglove-sdk 0.30 advertises a new channel before it can take subscriptions to it: a
+  // subscription made at once may be refused ("Unknown channel"). Subscribe again.
+  const refused = /Unknown channel\D*(\d+)/.exec(status.message);
+  const channel = refused && out.channels.find((c) => c.id === Number(refused[1]));
+  if (channel && channel.topic in wanted) {
+    setTimeout(() => subscribe([channel]), 100);
+  }
+});
 client.on("message", ({ subscriptionId, timestamp, data }) => {
   const topic = topicOf.get(subscriptionId);
   (out.messages[topic] ??= []).push({ timestamp: timestamp.toString(), data_b64: b64(data) });
