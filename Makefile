@@ -58,9 +58,11 @@ $(UBUNTU_STAMP): $(SOURCES) requirements-ubuntu2404.txt
 	$(call install_venv,$(UBUNTU_VENV),requirements-ubuntu2404.txt)
 
 # --dist loadscope: a module's tests run in one worker, so a module-scoped fixture (a SITL
-# flight, the fuzz harness's nodes) starts once, never twice on the same ports.
+# flight, the fuzz harness's nodes) starts once, never twice on the same ports. The JUnit
+# record (for a CI's test view) gives each test's worker and start time.
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 --dist loadscope --durations=25 test
+	$(BIN)/python -m pytest -n 2 --dist loadscope --durations=25 \
+	  --junitxml=build/test-results.xml test
 
 # The same suite with one core kept busy (a busy loop at nice 10), for anyone changing a
 # test that depends on timing: it must pass here too, and count no rerun.

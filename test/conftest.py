@@ -3,6 +3,7 @@ import fcntl
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -44,6 +45,13 @@ def pytest_sessionstart(session: pytest.Session) -> None:
 def pytest_sessionfinish(session: pytest.Session) -> None:
     """... and of this run's: tests kill nodes, ros2 launch and the fuzz harness too."""
     dds_shm.remove_orphaned()
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """Where and when each test ran, as properties of its JUnit record (`make test` writes
+    build/test-results.xml): the suite's timeline, worker by worker."""
+    item.user_properties += [('worker', os.environ.get('PYTEST_XDIST_WORKER', 'main')),
+                             ('started', f'{time.time():.1f}')]
 
 
 # A test that starts node processes or the ros2 tools depends on DDS discovery, process

@@ -20,20 +20,19 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TransformStamped
 from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
 from rclpy.serialization import serialize_message
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 from std_srvs.srv import SetBool
 from tf2_msgs.msg import TFMessage
 
 from conftest import REPO, refused_at_start, wait_for
+from ros2msg import cdr_decoder
 from uav_vs.ros.convert import bgr_to_image, ns_to_stamp
 from uav_vs.vision.ground_config import read_params_file
 
 PROBE = REPO / 'tools' / 'foxglove_probe'
 HOW_TO_GET_NODE = ('Node.js and npm not found: the Foxglove protocol client of this test '
                    'runs on them (Debian: apt install nodejs npm)')
-SEPARATOR = '\n' + '=' * 80 + '\n'
 
 
 @pytest.fixture(scope='module')
@@ -72,18 +71,8 @@ def start_node(processes, label: str, params: list[str]) -> str:
 def decoder(channel: dict):
     """The CDR decoder of a channel or service message, built from the ros2msg schema the
     node advertised (as the app builds it), with rosbags."""
-    name, schema = channel['schemaName'], channel['schema']
-    first, *rest = schema.split(SEPARATOR)
-    package, _, type_name = name.split('/')
-    types = get_types_from_msg(first, f'{package}/msg/{type_name}')
-    for part in rest:
-        header, _, text = part.partition('\n')
-        dep_package, dep_name = header.removeprefix('MSG: ').split('/')
-        types.update(get_types_from_msg(text, f'{dep_package}/msg/{dep_name}'))
-    store = get_typestore(Stores.EMPTY)
-    store.register(types)
-    [typename] = [t for t in types if t.endswith('/' + type_name)]
-    return lambda data_b64: store.deserialize_cdr(base64.b64decode(data_b64), typename)
+    decode = cdr_decoder(channel['schemaName'], channel['schema'])
+    return lambda data_b64: decode(base64.b64decode(data_b64))
 
 
 class Talker:

@@ -1,27 +1,22 @@
 """uav_vs.bag.schemas: the ros2msg schemas built from the installed definitions describe
 the types exactly as rosbags' own ROS 2 Jazzy type store does (an independent parse of
 the same definitions), each used type given once; a service's halves likewise."""
-import pytest
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+import re
 
-from uav_vs.bag.schemas import SEPARATOR, SchemaError, message_schema, service_schemas
+import pytest
+from rosbags.typesys import Stores, get_typestore
+
+from ros2msg import schema_types
+from uav_vs.bag.schemas import SchemaError, message_schema, service_schemas
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
 
 
 def parsed(name: str, schema: str) -> dict:
-    """Every type a schema defines, as rosbags parses it: name -> field definitions."""
-    first, *rest = schema.split(f'\n{SEPARATOR}\n')
-    package, _, type_name = name.split('/')
-    types = get_types_from_msg(first, f'{package}/msg/{type_name}') if first.strip() else {}
-    headers = []
-    for part in rest:
-        header, _, text = part.partition('\n')
-        headers.append(header)
-        dep_package, dep_name = header.removeprefix('MSG: ').split('/')
-        types.update(get_types_from_msg(text, f'{dep_package}/msg/{dep_name}'))
+    """Every type a schema defines, each used type given once."""
+    headers = re.findall(r'^MSG: .*$', schema, re.M)
     assert len(headers) == len(set(headers)), headers
-    return types
+    return schema_types(name, schema)
 
 
 @pytest.mark.parametrize('msgtype', ['geometry_msgs/msg/PoseStamped', 'sensor_msgs/msg/Image',

@@ -11,14 +11,21 @@ subscribed only while an app subscribes to its channel, with its publishers' rel
 and durability (so /tf_static's latched transforms come too), and every message goes
 out as the serialized bytes it came in, stamped with the time it was received.
 
+For a slow link, `foxglove.max_rates` (`TOPIC=HZ`) forwards at most HZ messages a second
+on a topic, the first of each period, and `foxglove.jpeg_topics` serves a raw image topic
+also as `<topic>/jpeg`, each frame re-encoded as a JPEG CompressedImage
+(`foxglove.jpeg_quality`); a frame that cannot be encoded is counted and skipped.
+
 With `foxglove.allow_services` the graph's services that `foxglove.services` lets
 through (`arm`, `land`, `controller/enable`, ...) are advertised too, and a call from
 the app is made on the ROS service and answered with its response (CDR both ways),
 within `foxglove.service_timeout`. Off (the default), the server does not offer services
 at all: a call is refused.
 
-Diagnostics every `foxglove.diagnostics_period`: the clients' subscriptions, channels,
-services and messages forwarded. Every parameter is read-only.
+Diagnostics every `foxglove.diagnostics_period`: the port, channels, the topics the
+clients subscribe to, messages forwarded and held back by a rate limit, the services
+offered, malformed images and calls skipped, and topics without a schema. Every parameter
+is read-only.
 """
 import re
 import threading
