@@ -32,7 +32,8 @@ EXECUTABLES = {
 DATA_FILES = [
     ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
     ('share/' + PACKAGE, ['package.xml']),
-    ('share/' + PACKAGE + '/config', sorted(glob('config/*'))),
+    ('share/' + PACKAGE + '/config', sorted(glob('config/*.*'))),
+    ('share/' + PACKAGE + '/config/foxglove', sorted(glob('config/foxglove/*.json'))),
     ('share/' + PACKAGE + '/launch', sorted(glob('launch/*.launch.py'))),
 ]
 

@@ -14,7 +14,7 @@ SUITES = {
     'relay': ['relay_command'],
     'bags': ['bags'],
     'convert': ['convert'],
-    'graph': ['graph_latency', 'graph_scaling'],
+    'graph': ['graph_latency', 'graph_scaling', 'live_view'],
     'sim': ['camera_effects'],
     'calibration': ['calibration'],
     'fusion': ['pose_filter'],

@@ -7,16 +7,22 @@ off, holds, flies to a setpoint on the ground station's pose and lands on a pad 
 onboard pose. Every assertion is against the simulator's truth (`truth/pose`), and the
 ROS graph itself is asked what the controller flew on.
 """
+import re
 from collections import defaultdict
 
 from rclpy.serialization import deserialize_message
+from rosbags.typesys.base import Nodetype
 
+from ros2msg import schema_types
+from uav_vs.bag.schemas import message_schema
 from uav_vs.bag.reader import Bag
 from uav_vs.flight.replay import replay_flight
+from uav_vs.flight.live_view import load_layout, references
 from uav_vs.flight.report import FlightReport
 from uav_vs.flight.scenario import Configs, Landing, Scenario, Setpoint, fly
 from uav_vs.ros.convert import stamp_to_ns
 from uav_vs.ros.replay import message_class
+from uav_vs.vision.ground_config import default_config_path
 
 SCENARIO = Scenario('test', 1.3, Setpoint((0.0, 0.0, 1.3), hold=1.0),
                     (Setpoint((0.7, -0.5, 1.5), hold=1.5),),
@@ -77,12 +83,15 @@ def test_the_same_mission_flies_a_px4_vehicle(tmp_path):
     """The simulated vehicle behaves as PX4 (OFFBOARD only once setpoints stream, AMSL
     takeoff altitude, AUTO.LOITER after the takeoff): the unchanged relay and mission
     hold, approach the pad on the onboard pose and land on it. The live view runs beside
-    it (`make demo VIEW=1`), on a free port."""
+    it as `make demo VIEW=1` runs it (with the pose filter and frames_node), on a free
+    port, and the layout that ships names only topics and fields it served."""
     scenario = Scenario('px4', 1.3, Setpoint((0.0, 0.0, 1.3), hold=1.0),
                         landing=Landing((0.5, -0.4), approach=1.1, final=0.8, hold=1.0))
     viewer = tmp_path / 'foxglove.yaml'
     viewer.write_text('/**:\n  ros__parameters:\n    foxglove:\n      port: 0\n')
-    log = fly(scenario, tmp_path, Configs(foxglove=viewer), record=False, autopilot='px4')
+    configs = Configs(foxglove=viewer, frames=default_config_path('frames.yaml'),
+                      pose_filter=default_config_path('pose_filter.yaml'))
+    log = fly(scenario, tmp_path, configs, record=False, autopilot='px4')
     report = FlightReport.from_log(log)
     print(report.summary())
     assert log.failure == '', log.failure
@@ -95,7 +104,35 @@ def test_the_same_mission_flies_a_px4_vehicle(tmp_path):
     relay = (tmp_path / 'logs' / 'mavlink_relay_node.log').read_text()
     assert 'set_guided: done (OFFBOARD, disarmed)' in relay
     assert 'set_guided: done (OFFBOARD, armed)' in relay
-    assert 'serving ws://127.0.0.1:' in (tmp_path / 'logs' / 'foxglove_node.log').read_text()
+    viewer_log = (tmp_path / 'logs' / 'foxglove_node.log').read_text()
+    assert 'serving ws://127.0.0.1:' in viewer_log
+    served = dict(re.findall(r'advertising (\S+) \((\S+)\)', viewer_log))
+    for panel, topic, fields in references(load_layout()):
+        if topic in ONLY_WHILE_FOLLOWING:
+            continue
+        assert topic in served, (panel, topic, sorted(served))
+        if fields:
+            assert leaf_type(served[topic], fields), (panel, topic, fields)
+
+
+# Topics of the layout that only the follow mission's nodes publish (target_tracker_node).
+ONLY_WHILE_FOLLOWING = {'/onboard/target_outline'}
+
+
+def leaf_type(msgtype: str, fields: tuple[str, ...]) -> str | None:
+    """The type of msgtype's field `a.b.c` (a number or string for a plot), from the
+    schema foxglove_node advertises it with; None if there is no such field."""
+    types = schema_types(msgtype, message_schema(msgtype))
+    for k, name in enumerate(fields):
+        definitions = dict(types[msgtype][1])
+        if name not in definitions:
+            return None
+        kind, desc = definitions[name]
+        if kind == Nodetype.NAME:
+            msgtype = desc
+        else:
+            return desc[0] if k == len(fields) - 1 and kind == Nodetype.BASE else None
+    return None
 
 
 def posable_poses(bag, sources: dict[str, tuple[str, ...]]) -> dict[str, int]:

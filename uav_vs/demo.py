@@ -43,8 +43,9 @@ controller and relay, each through its own hold and setpoint; the summary adds, 
 vehicle, what the ROS graph and its relay showed of crosstalk (none is expected). The
 output folder has a folder per vehicle.
 
-`make demo VIEW=1` (`--view`) also runs foxglove_node (config/foxglove.yaml) and prints
-the address to open in Foxglove or Lichtblick (docs/live_view.md).
+`make demo VIEW=1` (`--view`) also runs foxglove_node (config/foxglove.yaml) and
+frames_node (the TF tree of the 3D view), and prints the address to open in Foxglove or
+Lichtblick and the layout to import, config/foxglove/uav_vs.json (docs/live_view.md).
 
 `make demo BAG=<bag>` (`--bag`) replays a bag instead (the flight bag a closed-loop run
 records into the output folder, or bags/ground_trinocular, bags/onboard) through the
@@ -112,11 +113,13 @@ def closed_loop(scenario_name: str, out: Path, autopilot: str, sensors: str,
           f'(logs in {out}/logs/)', flush=True)
     viewer = default_config_path('foxglove.yaml') if view else None
     configs = Configs(sensors=profile, pose_filter=default_config_path('pose_filter.yaml'),
-                      foxglove=viewer)
+                      foxglove=viewer,
+                      frames=default_config_path('frames.yaml') if view else None)
     if viewer is not None:
         p = read_params_file(viewer)
         print(f"live view: open ws://{p['foxglove.host']}:{p['foxglove.port']} in Foxglove or "
-              'Lichtblick (Open connection, Foxglove WebSocket; docs/live_view.md)', flush=True)
+              'Lichtblick (Open connection, Foxglove WebSocket), then import the layout '
+              f'{default_config_path("foxglove/uav_vs.json")} (docs/live_view.md)', flush=True)
     return report(fly(scenario, out, configs, autopilot=autopilot, sitl=sitl,
                       startup_timeout=SITL_STARTUP_S if sitl else 90.0, hosts=hosts,
                       cut_link=cut_link), out)

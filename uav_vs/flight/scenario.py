@@ -138,6 +138,8 @@ class Configs:
     relay: Path = default_config_path('mavlink_relay.yaml')
     pose_filter: Path | None = None     # pose_filter_node's params file; None: not run
     foxglove: Path | None = None        # foxglove_node's (the live view); None: not run
+    frames: Path | None = None          # frames_node's (the TF tree a 3D view places the
+                                        # cameras and vehicle by); None: not run
     ground_layout: str = DEFAULT_LAYOUT
     # The ground rig as it really is, which sim_world renders, when the ground station is
     # given another calibration in `ground` (one solved by uav_vs_calibrate); default: ground.
@@ -369,6 +371,9 @@ class _Mission:
         if c.pose_filter is not None:
             self._start('pose_filter_node', 'pose_filter_node',
                         ['--params-file', str(c.pose_filter)])
+        if c.frames is not None:
+            self._start('frames_node', 'frames_node', [
+                a for f in (c.frames, c.ground, c.onboard) for a in ('--params-file', str(f))])
         if c.foxglove is not None:
             self._start('foxglove_node', 'foxglove_node', ['--params-file', str(c.foxglove)])
         self._start_controller('ground')

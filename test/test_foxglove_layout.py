@@ -1,0 +1,42 @@
+"""config/foxglove/uav_vs.json, the layout that ships: a layout both Foxglove and
+Lichtblick import (the classic `configById` + `layout` form). That it names only topics
+and fields the graph publishes is checked against a flight: test_closed_loop's PX4 flight
+runs the live view and compares the layout with the channels foxglove_node advertised."""
+import pytest
+
+from uav_vs.flight.live_view import load_layout, panels, references
+
+
+def test_every_panel_of_the_tree_is_configured_and_every_configured_one_shown():
+    layout = load_layout()
+    shown = panels(layout['layout'])
+    assert len(shown) == len(set(shown))
+    assert set(shown) == set(layout['configById'])
+    for key in ('globalVariables', 'userNodes', 'playbackConfig'):
+        assert key in layout
+
+
+def test_the_layout_shows_what_an_operator_watches():
+    refs = {topic for _, topic, _ in references(load_layout())}
+    for cam in ('cam1', 'cam2', 'cam3'):
+        assert {f'/{cam}/image_raw/compressed', f'/{cam}/landmark_windows'} <= refs
+    assert {'/onboard/image_raw/compressed', '/onboard/target_outline', '/cmd_vel', '/setpoint',
+            '/diagnostics'} <= refs
+    for source in ('ground', 'onboard', 'fused', 'truth'):
+        assert f'/{source}/pose' in refs
+
+
+def test_references_name_each_panels_topics_and_plot_fields():
+    layout = {'configById': {
+        'Image!a': {'imageMode': {'imageTopic': '/c/image', 'calibrationTopic': '',
+                                  'annotations': {'/c/marks': {'visible': True}}}},
+        '3D!b': {'topics': {'/p': {'visible': True}, '/hidden': {'visible': False}}},
+        'Plot!c': {'paths': [{'value': '/p.pose.position.x'}]},
+        'DiagnosticSummary!d': {'topicToRender': '/diagnostics'}}}
+    assert sorted(references(layout)) == sorted([
+        ('Image!a', '/tf', ()), ('Image!a', '/tf_static', ()), ('Image!a', '/c/image', ()),
+        ('Image!a', '/c/marks', ()), ('3D!b', '/tf', ()), ('3D!b', '/tf_static', ()),
+        ('3D!b', '/p', ()), ('Plot!c', '/p', ('pose', 'position', 'x')),
+        ('DiagnosticSummary!d', '/diagnostics', ())])
+    with pytest.raises(ValueError, match='Gauge!e'):
+        references({'configById': {'Gauge!e': {}}})
