@@ -62,13 +62,11 @@ GRAPH_FIXTURES = frozenset({'ros_node', 'processes', 'ros2_cli', 'ros2_env', 'la
 GRAPH_RERUNS = 1
 
 
-# xdist (--dist loadscope) hands whole modules to the workers in the order collected: the
-# longest ones (50 s to 4 min each by `pytest --durations=0`, mostly flights in real time)
-# go first, longest first, so that the run does not end with one worker flying the last
-# of them while the other idles. The fuzz harness's storms keep both cores busy: beside
-# the SITL flights (real time, three of them first) they tripled the image-to-command
-# latency and the first flight timed out at its pad approach; so the other worker starts
-# with the relay's MAVLink tests, and the storms come once the SITL flights are nearly done.
+# xdist (--dist loadscope) hands whole modules to the workers, those with the most tests
+# first (its default, --loadscope-reorder): this order only ranks modules with as many
+# tests. (Taking it as the schedule, with --no-loadscope-reorder, put the SITL flights
+# first beside CPU-bound modules: OpenCV's calibration, on every core, ran 191 s instead
+# of 51, and the first flight could not hold; in xdist's order they flew mid-run.)
 LONGEST_FIRST = ('test_sitl_closed_loop', 'test_mavlink_relay_node', 'test_closed_loop',
                  'test_fuzz_nodes', 'test_calibrated_flight', 'test_two_hosts', 'test_fleet',
                  'test_mavlink_session', 'test_mavlink_vehicle', 'test_fault_injection', 'test_mavlink_guards',
