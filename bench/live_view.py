@@ -5,8 +5,10 @@ The `setpoints` scenario flown as graph/latency flies it, without a viewer and t
 foxglove_node (and frames_node, as `make demo VIEW=1` runs them) and one client that
 watches: `layout`, the topics of the layout that ships (config/foxglove/uav_vs.json: the
 cameras' JPEG streams, annotations, poses, commands, TF, diagnostics); `everything`, every
-topic, the cameras' raw frames too; `slow_link`, the layout's topics with each camera's
-JPEG stream limited to 5 Hz (`foxglove.max_rates`). The client is the official protocol
+topic, the cameras' raw frames too; `slow_link`, the slow link's layout
+(config/foxglove/uav_vs_slow_link.json) with foxglove_node given
+config/foxglove_slow_link.yaml: each camera's JPEG stream re-encoded at half size,
+quality 50, 5 Hz, its annotations scaled alike. The client is the official protocol
 client on Node.js (tools/foxglove_probe), counting what it receives. Targets: image
 stamp -> cmd_vel with the viewer within 10 % of the flight without it (median), the slow
 link under 2 Mbit/s.
@@ -22,9 +24,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from bench.common import report
-from uav_vs.flight.live_view import layout_topics, load_layout
+from uav_vs.flight.live_view import LAYOUT, SLOW_LINK, layout_topics, load_layout
 from uav_vs.flight.report import command_latencies
 from uav_vs.flight.scenario import SETPOINTS, Configs, fly, free_port
 from uav_vs.vision.ground_config import default_config_path
@@ -32,7 +35,6 @@ from uav_vs.vision.ground_config import default_config_path
 PROBE = Path(__file__).resolve().parents[1] / 'tools' / 'foxglove_probe'
 LATENCY_TARGET = 1.10          # with a viewer / without, median image stamp -> cmd_vel
 SLOW_LINK_TARGET_MBIT_S = 2.0
-SLOW_LINK_RATES = ['/cam[0-9]+/image_raw/compressed=5', '/onboard/image_raw/compressed=5']
 
 
 class Viewer:
@@ -63,18 +65,21 @@ class Viewer:
         return self.result
 
 
-def flight(tmp: Path, name: str, viewer: tuple[str, Path, str, list[str]] | None):
-    """Fly `name`; with `viewer` (node, probe folder, topics pattern, max_rates), watched."""
+def flight(tmp: Path, name: str, viewer: tuple[str, Path, str, Path] | None):
+    """Fly `name` as `make demo` does (its bag recorded: the simulated cameras encode
+    JPEG); with `viewer` (node, probe folder, topics pattern, foxglove_node's params file
+    but for the port), watched."""
     configs, watching = Configs(), None
     if viewer is not None:
-        node, folder, pattern, rates = viewer
+        node, folder, pattern, params_file = viewer
         port = free_port()
-        params = tmp / f'{name}.yaml'
-        params.write_text('/**:\n  ros__parameters:\n    foxglove:\n'
-                          f'      port: {port}\n      max_rates: {json.dumps(rates)}\n')
-        configs = Configs(foxglove=params, frames=default_config_path('frames.yaml'))
+        params = yaml.safe_load(params_file.read_text())
+        params['/**']['ros__parameters']['foxglove']['port'] = port
+        (tmp / f'{name}.yaml').write_text(yaml.safe_dump(params))
+        configs = Configs(foxglove=tmp / f'{name}.yaml',
+                          frames=default_config_path('frames.yaml'))
         watching = Viewer(node, folder, port, pattern)
-    log = fly(SETPOINTS, tmp / name, configs, record=False)
+    log = fly(SETPOINTS, tmp / name, configs)
     return log, watching.wait() if watching else None
 
 
@@ -93,10 +98,14 @@ def main() -> None:
         subprocess.run([npm, 'ci', '--no-audit', '--no-fund', '--loglevel=error'],
                        cwd=folder, check=True, stdin=subprocess.DEVNULL)
         base, _ = flight(tmp, 'alone', None)
-        layout = '|'.join(re.escape(t) for t in layout_topics(load_layout()))
-        runs = {case: flight(tmp, case, (node, folder, pattern, rates))
-                for case, pattern, rates in (('layout', layout, []), ('everything', '.*', []),
-                                             ('slow_link', layout, SLOW_LINK_RATES))}
+        full, slow = (default_config_path(f) for f in ('foxglove.yaml',
+                                                        'foxglove_slow_link.yaml'))
+        layout, slow_layout = ('|'.join(re.escape(t) for t in layout_topics(load_layout(f)))
+                               for f in (LAYOUT, SLOW_LINK))
+        runs = {case: flight(tmp, case, (node, folder, pattern, params))
+                for case, pattern, params in (('layout', layout, full),
+                                              ('everything', '.*', full),
+                                              ('slow_link', slow_layout, slow))}
     alone = command_latencies(base)
     for case, (log, seen) in runs.items():
         watched = command_latencies(log)

@@ -10,14 +10,16 @@ ROS graph itself is asked what the controller flew on.
 import re
 from collections import defaultdict
 
+import yaml
 from rclpy.serialization import deserialize_message
 from rosbags.typesys.base import Nodetype
 
+from conftest import REPO
 from ros2msg import schema_types
-from uav_vs.bag.schemas import message_schema
 from uav_vs.bag.reader import Bag
+from uav_vs.bag.schemas import message_schema
+from uav_vs.flight.live_view import LAYOUT, SLOW_LINK, load_layout, references
 from uav_vs.flight.replay import replay_flight
-from uav_vs.flight.live_view import load_layout, references
 from uav_vs.flight.report import FlightReport
 from uav_vs.flight.scenario import Configs, Landing, Scenario, Setpoint, fly
 from uav_vs.ros.convert import stamp_to_ns
@@ -84,11 +86,14 @@ def test_the_same_mission_flies_a_px4_vehicle(tmp_path):
     takeoff altitude, AUTO.LOITER after the takeoff): the unchanged relay and mission
     hold, approach the pad on the onboard pose and land on it. The live view runs beside
     it as `make demo VIEW=1` runs it (with the pose filter and frames_node), on a free
-    port, and the layout that ships names only topics and fields it served."""
+    port, with the slow link's copies too: the layouts that ship name only topics and
+    fields it served."""
     scenario = Scenario('px4', 1.3, Setpoint((0.0, 0.0, 1.3), hold=1.0),
                         landing=Landing((0.5, -0.4), approach=1.1, final=0.8, hold=1.0))
     viewer = tmp_path / 'foxglove.yaml'
-    viewer.write_text('/**:\n  ros__parameters:\n    foxglove:\n      port: 0\n')
+    params = yaml.safe_load((REPO / 'config' / 'foxglove_slow_link.yaml').read_text())
+    params['/**']['ros__parameters']['foxglove']['port'] = 0
+    viewer.write_text(yaml.safe_dump(params))
     configs = Configs(foxglove=viewer, frames=default_config_path('frames.yaml'),
                       pose_filter=default_config_path('pose_filter.yaml'))
     log = fly(scenario, tmp_path, configs, record=False, autopilot='px4')
@@ -107,7 +112,8 @@ def test_the_same_mission_flies_a_px4_vehicle(tmp_path):
     viewer_log = (tmp_path / 'logs' / 'foxglove_node.log').read_text()
     assert 'serving ws://127.0.0.1:' in viewer_log
     served = dict(re.findall(r'advertising (\S+) \((\S+)\)', viewer_log))
-    for panel, topic, fields in references(load_layout()):
+    layouts = [references(load_layout(path)) for path in (LAYOUT, SLOW_LINK)]
+    for panel, topic, fields in layouts[0] + layouts[1]:
         if topic in ONLY_WHILE_FOLLOWING:
             continue
         assert topic in served, (panel, topic, sorted(served))
@@ -116,7 +122,7 @@ def test_the_same_mission_flies_a_px4_vehicle(tmp_path):
 
 
 # Topics of the layout that only the follow mission's nodes publish (target_tracker_node).
-ONLY_WHILE_FOLLOWING = {'/onboard/target_outline'}
+ONLY_WHILE_FOLLOWING = {'/onboard/target_outline', '/onboard/target_outline/jpeg'}
 
 
 def leaf_type(msgtype: str, fields: tuple[str, ...]) -> str | None:

@@ -146,6 +146,35 @@ def test_a_serialized_image_becomes_a_serialized_jpeg_of_it():
         bad = cv.bgr_to_image(smooth, header)
         bad.data = bad.data[:100]
         cv.image_cdr_to_jpeg_cdr(serialize_message(bad))
+    half = deserialize_message(cv.image_cdr_to_jpeg_cdr(raw, 90, scale=0.5), CompressedImage)
+    decoded = cv2.imdecode(np.frombuffer(bytes(half.data), np.uint8), cv2.IMREAD_COLOR)
+    shrunk = cv2.resize(smooth, (32, 24), interpolation=cv2.INTER_AREA)
+    assert decoded.shape == (24, 32, 3) and np.abs(decoded.astype(int) - shrunk).mean() < 2.0
+    jpeg_frame = serialize_message(cv.bgr_to_compressed(smooth, header))      # from a JPEG stream
+    again = deserialize_message(cv.image_cdr_to_jpeg_cdr(jpeg_frame, 90, 0.5, compressed=True),
+                                CompressedImage)
+    decoded = cv2.imdecode(np.frombuffer(bytes(again.data), np.uint8), cv2.IMREAD_COLOR)
+    assert again.header == header and decoded.shape == (24, 32, 3)
+    assert np.abs(decoded.astype(int) - shrunk).mean() < 3.0
+    with pytest.raises(cv.MessageError):
+        broken = cv.bgr_to_compressed(smooth, header)
+        broken.data = bytes(broken.data[:40]) + bytes(200)
+        cv.image_cdr_to_jpeg_cdr(serialize_message(broken), compressed=True)
+
+
+def test_a_serialized_marker_scales_with_its_image():
+    from rclpy.serialization import deserialize_message, serialize_message
+    from visualization_msgs.msg import ImageMarker
+    header = Header(frame_id='cam1')
+    marker = cv.outlines_to_marker([cv.rect_corners(10, 20, 4, 2)], header, (1, 1, 0, 1))
+    marker.position.x, marker.position.y = 8.0, 6.0
+    half = deserialize_message(cv.marker_cdr_scaled(serialize_message(marker), 0.5), ImageMarker)
+    assert half.header == header and (half.position.x, half.position.y) == (4.0, 3.0)
+    np.testing.assert_allclose([(p.x, p.y) for p in half.points],
+                               [(p.x / 2, p.y / 2) for p in marker.points])
+    assert (half.scale, half.outline_color) == (marker.scale, marker.outline_color)
+    with pytest.raises(cv.MessageError, match='ImageMarker'):
+        cv.marker_cdr_scaled(b'\x00\x01\x00\x00' + b'\x07' * 3, 0.5)
 
 @pytest.mark.parametrize('n', [0, 4, 5, 8, 12, 14])
 def test_camera_from_camera_info_of_every_opencv_model(n):

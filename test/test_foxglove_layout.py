@@ -4,7 +4,7 @@ and fields the graph publishes is checked against a flight: test_closed_loop's P
 runs the live view and compares the layout with the channels foxglove_node advertised."""
 import pytest
 
-from uav_vs.flight.live_view import load_layout, panels, references
+from uav_vs.flight.live_view import SLOW_LINK, load_layout, panels, references
 
 
 def test_every_panel_of_the_tree_is_configured_and_every_configured_one_shown():
@@ -40,3 +40,17 @@ def test_references_name_each_panels_topics_and_plot_fields():
         ('DiagnosticSummary!d', '/diagnostics', ())])
     with pytest.raises(ValueError, match='Gauge!e'):
         references({'configById': {'Gauge!e': {}}})
+
+
+def test_the_slow_link_layout_is_the_layout_on_the_smaller_frames():
+    """uav_vs_slow_link.json: the same panels, the images and their annotations the
+    `/jpeg` copies config/foxglove_slow_link.yaml has foxglove_node serve, without the
+    full-size calibration (3D view and plots unchanged)."""
+    expected = load_layout()
+    for panel, config in expected['configById'].items():
+        if panel.startswith('Image!'):
+            mode = config['imageMode']
+            mode['imageTopic'] += '/jpeg'
+            del mode['calibrationTopic']
+            mode['annotations'] = {f'{t}/jpeg': v for t, v in mode['annotations'].items()}
+    assert load_layout(SLOW_LINK) == expected

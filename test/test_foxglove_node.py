@@ -24,10 +24,11 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 from std_srvs.srv import SetBool
 from tf2_msgs.msg import TFMessage
+from visualization_msgs.msg import ImageMarker
 
 from conftest import REPO, refused_at_start, wait_for
 from ros2msg import cdr_decoder
-from uav_vs.ros.convert import bgr_to_image, ns_to_stamp
+from uav_vs.ros.convert import bgr_to_image, ns_to_stamp, outlines_to_marker, rect_corners
 from uav_vs.vision.ground_config import read_params_file
 
 PROBE = REPO / 'tools' / 'foxglove_probe'
@@ -77,15 +78,16 @@ def decoder(channel: dict):
 
 class Talker:
     """What the graph would publish: poses at 20 Hz, camera frames at 10 Hz (sensor-data
-    QoS, as a camera driver offers them), one latched static transform; an `arm` service
-    that counts its calls; poses on /late/pose too from `late_at` (monotonic clock). Every
-    pose and frame sent is kept, by stamp."""
+    QoS, as a camera driver offers them) each with its annotation (an ImageMarker
+    outlining a window that moves), one latched static transform; an `arm` service that
+    counts its calls; poses on /late/pose too from `late_at` (monotonic clock). Every
+    pose, frame and outline sent is kept, by stamp."""
 
     late_at = float('inf')
     malformed_every: int | None = None      # every so many frames, one with too little data
 
     def __init__(self, node) -> None:
-        self.node, self.poses, self.frames, self.calls = node, {}, {}, []
+        self.node, self.poses, self.frames, self.outlines, self.calls = node, {}, {}, {}, []
         static = node.create_publisher(TFMessage, '/tf_static', QoSProfile(
             depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         t = TransformStamped(child_frame_id='cam1')
@@ -94,6 +96,7 @@ class Talker:
         static.publish(TFMessage(transforms=[t]))
         self.pose_pub = node.create_publisher(PoseStamped, '/ground/pose', 10)
         self.image_pub = node.create_publisher(Image, '/cam1/image_raw', qos_profile_sensor_data)
+        self.marker_pub = node.create_publisher(ImageMarker, '/cam1/landmark_windows', 10)
         node.create_service(SetBool, '/arm', self.on_arm)
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self.run, daemon=True)
@@ -127,6 +130,9 @@ class Talker:
                 else:
                     self.frames[stamp] = frame
                 self.image_pub.publish(image)
+                self.outlines[stamp] = rect_corners(k % 40, 3.0, 12.5, 10.0)
+                self.marker_pub.publish(outlines_to_marker([self.outlines[stamp]], header,
+                                                           (1.0, 1.0, 0.0, 1.0)))
             k += 1
             time.sleep(0.05)
 
@@ -246,9 +252,37 @@ def test_for_a_slow_link_a_rate_limit_and_jpeg_frames(probe, processes, talker, 
         assert msg.format == 'jpeg' and msg.header.frame_id == 'cam1'
         error = np.abs(image.astype(int) - talker.frames[stamp]).mean()
         assert error < 3.0, error        # JPEG at quality 80 of a smooth frame
-    assert wait_for(lambda: diagnostics and int(diagnostics[-1]['malformed_images']) > 0
+    assert wait_for(lambda: diagnostics and int(diagnostics[-1]['unconverted']) > 0
                     and int(diagnostics[-1]['throttled']) > 0, 10), diagnostics[-1:]
     assert 'image data too short' in processes.log('fox_slow')
+
+
+def test_for_a_slow_link_smaller_frames_with_their_annotations(probe, processes, talker):
+    """foxglove.jpeg_scale 0.5: the JPEG frames half the size, close to the frame shrunk
+    by area; the annotation served beside them with its pixel coordinates halved."""
+    url = start_node(processes, 'fox_small', [
+        '-p', "foxglove.jpeg_topics:=['/cam1/image_raw']", '-p', 'foxglove.jpeg_scale:=0.5',
+        '-p', "foxglove.jpeg_markers:=['/cam[0-9]/landmark_windows']"])
+    got = probe({'url': url, 'timeout_s': 30, 'settle_s': 1.0,
+                 'subscribe': {'/cam1/image_raw/jpeg': 6, '/cam1/landmark_windows/jpeg': 6}})
+    assert not got['timedOut'], {t: len(m) for t, m in got['messages'].items()}
+    channels = {c['topic']: c for c in got['channels']}
+    assert channels['/cam1/landmark_windows/jpeg']['schemaName'] == \
+        'visualization_msgs/msg/ImageMarker'
+    image = decoder(channels['/cam1/image_raw/jpeg'])
+    for m in got['messages']['/cam1/image_raw/jpeg']:
+        msg = image(m['data_b64'])
+        frame = talker.frames[msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec]
+        small = cv2.resize(frame, (32, 24), interpolation=cv2.INTER_AREA)
+        decoded = cv2.imdecode(msg.data, cv2.IMREAD_COLOR)
+        assert decoded.shape == (24, 32, 3)
+        assert np.abs(decoded.astype(int) - small).mean() < 3.0
+    marker = decoder(channels['/cam1/landmark_windows/jpeg'])
+    for m in got['messages']['/cam1/landmark_windows/jpeg']:
+        msg = marker(m['data_b64'])
+        outline = talker.outlines[msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec]
+        points = np.array([(p.x, p.y) for p in msg.points])
+        assert len(points) == 8 and np.allclose(points[::2], 0.5 * outline)
 
 
 @pytest.mark.parametrize('param, value', [('foxglove.topics', "['(']"),

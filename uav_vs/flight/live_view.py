@@ -7,6 +7,8 @@ from pathlib import Path
 from uav_vs.vision.ground_config import default_config_path
 
 LAYOUT = default_config_path('foxglove/uav_vs.json')
+# The same for a slow link, with foxglove_node given config/foxglove_slow_link.yaml too.
+SLOW_LINK = default_config_path('foxglove/uav_vs_slow_link.json')
 
 
 def load_layout(path: Path = LAYOUT) -> dict:

@@ -12,9 +12,12 @@ and durability (so /tf_static's latched transforms come too), and every message 
 out as the serialized bytes it came in, stamped with the time it was received.
 
 For a slow link, `foxglove.max_rates` (`TOPIC=HZ`) forwards at most HZ messages a second
-on a topic, the first of each period, and `foxglove.jpeg_topics` serves a raw image topic
-also as `<topic>/jpeg`, each frame re-encoded as a JPEG CompressedImage
-(`foxglove.jpeg_quality`); a frame that cannot be encoded is counted and skipped.
+on a topic, the first of each period, and `foxglove.jpeg_topics` serves an image topic
+(raw or compressed) also as `<topic>/jpeg`, each frame re-encoded as a JPEG CompressedImage
+(`foxglove.jpeg_quality`), `foxglove.jpeg_scale` times its size; `foxglove.jpeg_markers`
+serves an image annotation (visualization_msgs/ImageMarker) also as `<topic>/jpeg`, its
+pixel coordinates scaled alike. A frame or marker that cannot be converted is counted and
+skipped.
 
 With `foxglove.allow_services` the graph's services that `foxglove.services` lets
 through (`arm`, `land`, `controller/enable`, ...) are advertised too, and a call from
@@ -24,20 +27,22 @@ at all: a call is refused.
 
 Diagnostics every `foxglove.diagnostics_period`: the port, channels, the topics the
 clients subscribe to, messages forwarded and held back by a rate limit, the services
-offered, malformed images and calls skipped, and topics without a schema. Every parameter
-is read-only.
+offered, frames or markers that could not be converted and malformed calls (skipped),
+and topics without a schema. Every parameter is read-only.
 """
 import re
 import threading
 from collections import deque
 from dataclasses import dataclass, field
+from functools import partial
+from typing import Callable
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 
 from uav_vs.bag.schemas import SchemaError, message_schema, service_schemas
-from uav_vs.ros.convert import MessageError, image_cdr_to_jpeg_cdr
+from uav_vs.ros.convert import MessageError, image_cdr_to_jpeg_cdr, marker_cdr_scaled
 from uav_vs.ros.node_main import OK, WARN, Diagnostics, ThrottledWarnings, run
 from uav_vs.ros.params import Param, ParameterError, T, declare
 from uav_vs.ros.replay import message_class
@@ -68,10 +73,17 @@ PARAMS = [
           'TOPIC=HZ entries (TOPIC a regular expression): at most HZ messages a second are '
           'forwarded on a topic it matches, the first of each period (a slow link)'),
     Param('foxglove.jpeg_topics', T.STRING_ARRAY, [],
-          'regular expressions: a sensor_msgs/Image topic one matches is also served as '
-          '<topic>/jpeg, each frame re-encoded as a JPEG CompressedImage (a slow link)'),
+          'regular expressions: a sensor_msgs/Image or CompressedImage topic one matches is '
+          'also served as <topic>/jpeg, each frame re-encoded as a JPEG CompressedImage (a '
+          'slow link)'),
     Param('foxglove.jpeg_quality', T.INTEGER, 80, 'quality of the re-encoded JPEG frames',
           1, 100),
+    Param('foxglove.jpeg_scale', T.DOUBLE, 1.0,
+          'width and height of the re-encoded JPEG frames, times the image\'s', 0.1, 1.0),
+    Param('foxglove.jpeg_markers', T.STRING_ARRAY, [],
+          'regular expressions: a visualization_msgs/ImageMarker topic one matches is also '
+          'served as <topic>/jpeg, its pixel coordinates times foxglove.jpeg_scale (the '
+          'annotation of the re-encoded frames)'),
     Param('foxglove.discovery_period', T.DOUBLE, 1.0,
           'period of the look at the graph for new or gone topics and services, s', 0.1, 60.0),
     Param('foxglove.diagnostics_period', T.DOUBLE, 1.0, 'diagnostics period, s', 0.1, 60.0),
@@ -79,19 +91,20 @@ PARAMS = [
 
 
 IMAGE, COMPRESSED = 'sensor_msgs/msg/Image', 'sensor_msgs/msg/CompressedImage'
+MARKER = 'visualization_msgs/msg/ImageMarker'
 JPEG_SUFFIX = '/jpeg'
 
 
 @dataclass
 class Forwarded:
-    """One advertised channel: the ROS topic it serves (of type `msgtype`), re-encoded as
-    JPEG or not, at most one message every `period_ns`; its ROS subscription while an
-    app listens."""
+    """One advertised channel: the ROS topic it serves (of type `msgtype`), as it comes
+    or converted (JPEG frames, scaled markers), at most one message every `period_ns`;
+    its ROS subscription while an app listens."""
 
     source: str
     msgtype: str
     channel: object             # foxglove.Channel
-    jpeg: bool = False
+    convert: Callable[[bytes], bytes] | None = None
     period_ns: int = 0
     clients: set[int] = field(default_factory=set)
     subscription: object | None = None
@@ -125,7 +138,9 @@ class FoxgloveNode(Node):
         self.topic_patterns = _patterns(p, 'foxglove.topics')
         self.service_patterns = _patterns(p, 'foxglove.services')
         self.jpeg_patterns = _patterns(p, 'foxglove.jpeg_topics')
+        self.marker_patterns = _patterns(p, 'foxglove.jpeg_markers')
         self.jpeg_quality = p['foxglove.jpeg_quality']
+        self.jpeg_scale = p['foxglove.jpeg_scale']
         self.max_rates = _rates(p['foxglove.max_rates'])
         self.allow_services = p['foxglove.allow_services']
         self.service_timeout = p['foxglove.service_timeout']
@@ -133,7 +148,7 @@ class FoxgloveNode(Node):
         self.by_channel: dict[int, str] = {}
         self.advertised_services: dict[str, object] = {}   # name -> ROS client
         self.failed: set[str] = set()                      # types without a schema, warned once
-        self.malformed_calls = self.malformed_images = 0
+        self.malformed_calls = self.unconverted = 0
         self.warnings = ThrottledWarnings(self)
         self.wake = self.create_guard_condition(self.serve_requests)
         self.listener = Listener(self.wake.trigger)
@@ -170,7 +185,9 @@ class FoxgloveNode(Node):
             if topic not in self.forwarded:
                 self.advertise(topic, topic, msgtype)
             jpeg = topic + JPEG_SUFFIX
-            if (msgtype == IMAGE and _matches(self.jpeg_patterns, topic)
+            patterns = {IMAGE: self.jpeg_patterns, COMPRESSED: self.jpeg_patterns,
+                        MARKER: self.marker_patterns}.get(msgtype)
+            if (patterns and _matches(patterns, topic)
                     and jpeg not in present and jpeg not in self.forwarded):
                 self.advertise(jpeg, topic, msgtype)
         if self.allow_services:
@@ -178,8 +195,14 @@ class FoxgloveNode(Node):
 
     def advertise(self, name: str, source: str, msgtype: str) -> None:
         """Channel `name` serving topic `source`: the same messages, or (another name) its
-        frames as JPEG."""
-        served = msgtype if name == source else COMPRESSED
+        frames as JPEG, its markers scaled to them."""
+        convert = None
+        if name != source and msgtype in (IMAGE, COMPRESSED):
+            convert = partial(image_cdr_to_jpeg_cdr, quality=self.jpeg_quality,
+                              scale=self.jpeg_scale, compressed=msgtype == COMPRESSED)
+        elif name != source:
+            convert = partial(marker_cdr_scaled, scale=self.jpeg_scale)
+        served = COMPRESSED if name != source and msgtype in (IMAGE, COMPRESSED) else msgtype
         try:
             schema = message_schema(served)
         except SchemaError as err:
@@ -191,7 +214,7 @@ class FoxgloveNode(Node):
             name, message_encoding='cdr', context=self.fox_context,
             schema=Schema(name=served, encoding='ros2msg', data=schema.encode()))
         rate = next((hz for pattern, hz in self.max_rates if pattern.fullmatch(name)), None)
-        self.forwarded[name] = Forwarded(source, msgtype, channel, jpeg=name != source,
+        self.forwarded[name] = Forwarded(source, msgtype, channel, convert,
                                          period_ns=round(1e9 / rate) if rate else 0)
         self.by_channel[channel.id()] = name
         self.get_logger().info(f'advertising {name} ({served}) on channel {channel.id()}')
@@ -232,11 +255,11 @@ class FoxgloveNode(Node):
                     f.throttled += 1
                     return
                 f.last_ns = received
-            if f.jpeg:
+            if f.convert is not None:
                 try:
-                    data = image_cdr_to_jpeg_cdr(data, self.jpeg_quality)
+                    data = f.convert(data)
                 except MessageError as err:
-                    self.malformed_images += 1
+                    self.unconverted += 1
                     self.warnings.skipped(f'{f.source}: {err}')
                     return
             f.messages += 1
@@ -322,7 +345,7 @@ class FoxgloveNode(Node):
             'messages': sum(f.messages for f in self.forwarded.values()),
             'services': ' '.join(sorted(self.advertised_services)),
             'throttled': sum(f.throttled for f in self.forwarded.values()),
-            'malformed_images': self.malformed_images,
+            'unconverted': self.unconverted,
             'malformed_calls': self.malformed_calls,
             'without_schema': ' '.join(sorted(self.failed))})
 

@@ -144,11 +144,39 @@ def bgr_to_compressed(img: np.ndarray, header: Header, quality: int = 90) -> Com
     return msg
 
 
-def image_cdr_to_jpeg_cdr(raw: bytes, quality: int = 80) -> bytes:
-    """A serialized sensor_msgs/Image as a serialized JPEG CompressedImage, same header
-    (a slow link's copy of a camera stream). Raises MessageError as image_to_bgr does."""
-    msg = image_from_cdr(raw)
-    return serialize_message(bgr_to_compressed(image_to_bgr(msg), msg.header, quality))
+def image_cdr_to_jpeg_cdr(raw: bytes, quality: int = 80, scale: float = 1.0,
+                          compressed: bool = False) -> bytes:
+    """A serialized sensor_msgs/Image (CompressedImage with `compressed`) as a serialized
+    JPEG CompressedImage, same header, `scale` times its width and height (a slow link's
+    copy of a camera stream). Raises MessageError as image_to_bgr and compressed_to_bgr
+    do."""
+    if compressed:
+        try:
+            msg = deserialize_message(raw, CompressedImage)
+        except Exception as err:      # rclpy raises its own types for garbled CDR
+            raise MessageError(f'not a sensor_msgs/CompressedImage ({err})') from err
+        img = compressed_to_bgr(msg)
+    else:
+        msg = image_from_cdr(raw)
+        img = image_to_bgr(msg)
+    if scale != 1.0:
+        img = cv2.resize(img, (max(1, round(img.shape[1] * scale)),
+                               max(1, round(img.shape[0] * scale))),
+                         interpolation=cv2.INTER_AREA)
+    return serialize_message(bgr_to_compressed(img, msg.header, quality))
+
+
+def marker_cdr_scaled(raw: bytes, scale: float) -> bytes:
+    """A serialized visualization_msgs/ImageMarker with its pixel coordinates (position,
+    points) times `scale`: the annotation of an image served `scale` times its size.
+    Raises MessageError on bytes that are no ImageMarker."""
+    try:
+        msg = deserialize_message(raw, ImageMarker)
+    except Exception as err:      # rclpy raises its own types for short or garbled CDR
+        raise MessageError(f'not a visualization_msgs/ImageMarker ({err})') from err
+    msg.position.x, msg.position.y = msg.position.x * scale, msg.position.y * scale
+    msg.points = [Point(x=p.x * scale, y=p.y * scale, z=p.z) for p in msg.points]
+    return serialize_message(msg)
 
 
 def outlines_to_marker(outlines: Sequence[np.ndarray], header: Header, rgba: Sequence[float],
