@@ -6,6 +6,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import pytest
 
 from uav_vs import dds_shm
@@ -37,6 +38,12 @@ os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', str(REPO / 'config' / 'fastdds_shm.xml'))
 
 
+# OpenCV spreads a routine over every core; beside the other worker and the nodes the tests
+# start, that only oversubscribes CI's two cores. One thread per test worker.
+if os.environ.get('PYTEST_XDIST_WORKER'):
+    cv2.setNumThreads(1)
+
+
 def pytest_sessionstart(session: pytest.Session) -> None:
     """Free the shared memory of node processes killed by earlier runs (dds_shm)."""
     dds_shm.remove_orphaned()
@@ -62,22 +69,30 @@ GRAPH_FIXTURES = frozenset({'ros_node', 'processes', 'ros2_cli', 'ros2_env', 'la
 GRAPH_RERUNS = 1
 
 
-# xdist (--dist loadscope) hands whole modules to the workers, those with the most tests
-# first (its default, --loadscope-reorder): this order only ranks modules with as many
-# tests. (Taking it as the schedule, with --no-loadscope-reorder, put the SITL flights
-# first beside CPU-bound modules: OpenCV's calibration, on every core, ran 191 s instead
-# of 51, and the first flight could not hold; in xdist's order they flew mid-run.)
-LONGEST_FIRST = ('test_sitl_closed_loop', 'test_mavlink_relay_node', 'test_closed_loop',
-                 'test_fuzz_nodes', 'test_calibrated_flight', 'test_two_hosts', 'test_fleet',
-                 'test_mavlink_session', 'test_mavlink_vehicle', 'test_fault_injection', 'test_mavlink_guards',
-                 'test_ground_nodes', 'test_launch', 'test_world_switches', 'test_live_params')
+# The modules that fly a whole graph in real time, or storm nodes on both cores, run one
+# after the other on the first worker, the SITL flights last (test/scheduling.py); every
+# other module goes to the other worker, or to the first once its heavy ones are done.
+# Two such modules at once on CI's two cores (xdist's own order, most tests first) raised
+# the image-to-command latency past 280 ms and failed a dozen flights; the SITL flights
+# beside OpenCV's calibration (then on every core) could not hold.
+HEAVY = ('test_mavlink_relay_node', 'test_fuzz_nodes', 'test_closed_loop',
+         'test_fault_injection', 'test_two_hosts', 'test_calibrated_flight',
+         'test_world_switches', 'test_fleet', 'test_sitl_closed_loop')
+
+
+def pytest_xdist_make_scheduler(config, log):
+    if config.getvalue('dist') == 'loadscope':
+        from scheduling import HeavyApartScheduling
+        HeavyApartScheduling.heavy = frozenset(HEAVY)
+        return HeavyApartScheduling(config, log)
+    return None
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if GRAPH_FIXTURES & set(getattr(item, 'fixturenames', ())):
             item.add_marker(pytest.mark.flaky(reruns=GRAPH_RERUNS, reruns_delay=1))
-    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
+    rank = {name: k for k, name in enumerate(HEAVY)}
     items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))
 
 
