@@ -196,13 +196,13 @@ class FoxgloveNode(Node):
     def advertise(self, name: str, source: str, msgtype: str) -> None:
         """Channel `name` serving topic `source`: the same messages, or (another name) its
         frames as JPEG, its markers scaled to them."""
-        convert = None
-        if name != source and msgtype in (IMAGE, COMPRESSED):
+        convert, served = None, msgtype
+        if name != source and msgtype == MARKER:
+            convert = partial(marker_cdr_scaled, scale=self.jpeg_scale)
+        elif name != source:
             convert = partial(image_cdr_to_jpeg_cdr, quality=self.jpeg_quality,
                               scale=self.jpeg_scale, compressed=msgtype == COMPRESSED)
-        elif name != source:
-            convert = partial(marker_cdr_scaled, scale=self.jpeg_scale)
-        served = COMPRESSED if name != source and msgtype in (IMAGE, COMPRESSED) else msgtype
+            served = COMPRESSED
         try:
             schema = message_schema(served)
         except SchemaError as err:

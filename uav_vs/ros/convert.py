@@ -151,10 +151,7 @@ def image_cdr_to_jpeg_cdr(raw: bytes, quality: int = 80, scale: float = 1.0,
     copy of a camera stream). Raises MessageError as image_to_bgr and compressed_to_bgr
     do."""
     if compressed:
-        try:
-            msg = deserialize_message(raw, CompressedImage)
-        except Exception as err:      # rclpy raises its own types for garbled CDR
-            raise MessageError(f'not a sensor_msgs/CompressedImage ({err})') from err
+        msg = _from_cdr(raw, CompressedImage)
         img = compressed_to_bgr(msg)
     else:
         msg = image_from_cdr(raw)
@@ -170,13 +167,19 @@ def marker_cdr_scaled(raw: bytes, scale: float) -> bytes:
     """A serialized visualization_msgs/ImageMarker with its pixel coordinates (position,
     points) times `scale`: the annotation of an image served `scale` times its size.
     Raises MessageError on bytes that are no ImageMarker."""
-    try:
-        msg = deserialize_message(raw, ImageMarker)
-    except Exception as err:      # rclpy raises its own types for short or garbled CDR
-        raise MessageError(f'not a visualization_msgs/ImageMarker ({err})') from err
+    msg = _from_cdr(raw, ImageMarker)
     msg.position.x, msg.position.y = msg.position.x * scale, msg.position.y * scale
     msg.points = [Point(x=p.x * scale, y=p.y * scale, z=p.z) for p in msg.points]
     return serialize_message(msg)
+
+
+def _from_cdr(raw: bytes, cls):
+    """deserialize_message, raising MessageError for bytes that are no `cls`."""
+    try:
+        return deserialize_message(raw, cls)
+    except Exception as err:      # rclpy raises its own types for short or garbled CDR
+        module = cls.__module__.split('.')[0]
+        raise MessageError(f'not a {module}/{cls.__name__} ({err})') from err
 
 
 def outlines_to_marker(outlines: Sequence[np.ndarray], header: Header, rgba: Sequence[float],
