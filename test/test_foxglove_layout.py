@@ -26,6 +26,17 @@ def test_the_layout_shows_what_an_operator_watches():
         assert f'/{source}/pose' in refs
 
 
+def test_the_windows_are_drawn_on_the_frame_they_were_found_in():
+    """The app's "Sync annotations" shows a ground camera's frame with the landmark windows
+    of the same stamp (camshift_node publishes them for every frame while watched), not the
+    newest windows over an older frame. The onboard outline comes only while following a
+    target: synchronised, the onboard panel would wait for it and show no frame."""
+    config = load_layout()['configById']
+    for cam in ('cam1', 'cam2', 'cam3'):
+        assert config[f'Image!{cam}']['imageMode']['synchronize'] is True
+    assert not config['Image!onboard']['imageMode'].get('synchronize', False)
+
+
 def test_references_name_each_panels_topics_and_plot_fields():
     layout = {'configById': {
         'Image!a': {'imageMode': {'imageTopic': '/c/image', 'calibrationTopic': '',
