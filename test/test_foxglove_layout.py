@@ -37,6 +37,14 @@ def test_the_windows_are_drawn_on_the_frame_they_were_found_in():
     assert not config['Image!onboard']['imageMode'].get('synchronize', False)
 
 
+def test_the_plots_show_the_whole_flight_live_and_in_a_bag():
+    """No following window: a plot that follows the newest seconds works live, but
+    Lichtblick leaves it empty when it plays a recorded bag."""
+    plots = [c for k, c in load_layout()['configById'].items() if k.startswith('Plot!')]
+    assert len(plots) == 4
+    assert all('followingViewWidth' not in c and c['xAxisVal'] == 'timestamp' for c in plots)
+
+
 def test_references_name_each_panels_topics_and_plot_fields():
     layout = {'configById': {
         'Image!a': {'imageMode': {'imageTopic': '/c/image', 'calibrationTopic': '',
