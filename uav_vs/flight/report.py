@@ -36,7 +36,7 @@ TRACKS = ('truth', *SOURCES, 'target_truth', 'target')     # the PoseTracks of a
 LABELS = {'truth': 'simulator truth', 'ground': 'ground/pose (trinocular, section 3)',
           'onboard': 'onboard/pose (homography, section 4)',
           'odom': 'autopilot/odom (autopilot estimate)',
-          'fused': 'fused/pose (pose filter of ground, onboard)'}
+          'fused': 'fused/pose (pose filter of ground, onboard, autopilot/odom)'}
 # Scored against the truth at their own stamps (image stamps); the others interpolated.
 EXACT = ('ground', 'onboard')
 

@@ -45,8 +45,8 @@ PARAMS = [
           'standard deviation of each pose topic\'s position, m per axis', 1e-4, 100.0),
     Param('pose_filter.yaw_sigmas', T.DOUBLE_ARRAY, [0.03, 0.05],
           'standard deviation of each pose topic\'s yaw, rad', 1e-4, 10.0),
-    Param('pose_filter.odometry_topic', T.STRING, '',
-          "the autopilot's odometry (nav_msgs/Odometry, e.g. autopilot/odom); '': none"),
+    Param('pose_filter.odometry_topic', T.STRING, 'autopilot/odom',
+          "the autopilot's odometry (nav_msgs/Odometry, the relay's autopilot/odom); '': none"),
     Param('pose_filter.odometry_position_sigma', T.DOUBLE, 1000.0,
           "standard deviation of the odometry's position, m (large: its origin is the "
           "autopilot's own)", 1e-4, 1e6),
