@@ -68,6 +68,13 @@ def test_reaches_setpoint_and_lands_on_pad_on_vision_alone(tmp_path):
         infos, images = counts[f'{cam}/camera_info'], counts[f'{cam}/image_raw/compressed']
         assert infos > 100
         assert 0.95 * infos - 2 <= images <= infos + 2, (cam, images, infos)
+    # The windows a viewer draws over the recorded frames (the layout opens the bag):
+    # each on a recorded frame's stamp, each landmark found in it inside one of them.
+    for cam in ('cam1', 'cam2', 'cam3'):
+        windows, on_frames, inside, found = windows_in_bag(tmp_path / 'bag', cam)
+        assert windows >= 0.95 * counts[f'{cam}/landmarks'], (cam, windows)
+        assert on_frames == windows and inside == found > 3 * windows, \
+            (cam, windows, on_frames, inside, found)
     posable = posable_poses(tmp_path / 'bag', {'ground': ('cam1', 'cam2', 'cam3'),
                                                 'onboard': ('onboard',)})
     replay = FlightReport.from_log(replay_flight(tmp_path / 'bag', tmp_path / 'replay'))
@@ -139,6 +146,35 @@ def leaf_type(msgtype: str, fields: tuple[str, ...]) -> str | None:
         else:
             return desc[0] if k == len(fields) - 1 and kind == Nodetype.BASE else None
     return None
+
+
+def windows_in_bag(bag, cam: str) -> tuple[int, int, int, int]:
+    """A camera's recorded landmark_windows: how many, how many on the stamp of one of its
+    recorded frames, and of the landmark centres `cam/landmarks` gave for those stamps,
+    how many lie inside one of the windows of the same stamp and how many were found."""
+    topics = {f'{cam}/{t}' for t in ('image_raw/compressed', 'landmarks', 'landmark_windows')}
+    frames, centres, windows = set(), {}, {}
+    with Bag(bag) as recorded:
+        for m in recorded.messages([t for t in recorded.topics if t.lstrip('/') in topics]):
+            msg = deserialize_message(m.raw, message_class(m.msgtype))
+            stamp, kind = stamp_to_ns(msg.header.stamp), m.topic.rsplit('/', 1)[-1]
+            if kind == 'compressed':
+                frames.add(stamp)
+            elif kind == 'landmarks':
+                centres[stamp] = [(p.x, p.y) for p in msg.polygon.points if p.x == p.x]
+            else:
+                corners = [(p.x, p.y) for p in msg.points]
+                windows[stamp] = [(min(x for x, _ in corners[i:i + 8]),
+                                   min(y for _, y in corners[i:i + 8]),
+                                   max(x for x, _ in corners[i:i + 8]),
+                                   max(y for _, y in corners[i:i + 8]))
+                                  for i in range(0, len(corners), 8)]
+    inside = found = 0
+    for stamp, boxes in windows.items():
+        for x, y in centres.get(stamp, []):
+            found += 1
+            inside += any(x0 <= x <= x1 and y0 <= y <= y1 for x0, y0, x1, y1 in boxes)
+    return len(windows), len(windows.keys() & frames), inside, found
 
 
 def posable_poses(bag, sources: dict[str, tuple[str, ...]]) -> dict[str, int]:

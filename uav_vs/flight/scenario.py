@@ -200,13 +200,16 @@ def fly(scenario: Scenario, out_dir: Path, configs: Configs = Configs(),
 
 def recorded_topics(cameras: list[str], onboard_images: bool = True) -> list[str]:
     """What a flight's bag holds: every camera's JPEG images and calibration, the truth,
-    both vision poses, the ground landmarks, the setpoints, the commands and the
-    autopilot's estimate; enough to replay the flight through the open-loop graph.
+    both vision poses, the ground landmarks (and the windows they were found in, which
+    a viewer draws over the images), the setpoints, the commands and the autopilot's
+    estimate; enough to replay the flight through the open-loop graph.
     Without `onboard_images`, not the onboard camera's (a recorder on another host)."""
     per_camera = [f'{cam}/{topic}' for cam in [*cameras, 'onboard']
                   for topic in ('image_raw/compressed', 'camera_info')
                   if onboard_images or cam != 'onboard' or topic == 'camera_info']
-    return [*per_camera, *(f'{cam}/landmarks' for cam in cameras), 'truth/pose',
+    return [*per_camera, *(f'{cam}/{topic}' for cam in cameras
+                           for topic in ('landmarks', 'landmark_windows')),
+            *(['onboard/target_outline'] if onboard_images else []), 'truth/pose',
             'ground/pose', 'ground/landmarks', 'onboard/pose', 'setpoint', 'cmd_vel',
             'autopilot/odom', 'truth/target', 'onboard/target', 'target/pose']
 
