@@ -88,15 +88,18 @@ def test_reaches_setpoint_and_lands_on_pad_on_vision_alone(tmp_path):
     assert replay.commands.from_images > 0      # the controller ran on the replayed poses
 
 
-def test_the_same_mission_flies_a_px4_vehicle(tmp_path):
+def test_a_px4_vehicle_flies_on_the_fused_pose_through_blind_ground_cameras(tmp_path):
     """The simulated vehicle behaves as PX4 (OFFBOARD only once setpoints stream, AMSL
     takeoff altitude, AUTO.LOITER after the takeoff): the unchanged relay and mission
-    hold, approach the pad on the onboard pose and land on it. The live view runs beside
-    it as `make demo VIEW=1` runs it (with the pose filter and frames_node), on a free
-    port, with the slow link's copies too: the layouts that ship name only topics and
-    fields it served."""
+    hold and fly to a setpoint on the pose filter's estimate, the ground cameras covered
+    for the first 3 s of the way, then approach the pad on the onboard pose and land on
+    it. The live view runs beside it as `make demo VIEW=1` runs it (with the pose filter
+    and frames_node), on a free port, with the slow link's copies too: the layouts that
+    ship name only topics and fields it served."""
     scenario = Scenario('px4', 1.3, Setpoint((0.0, 0.0, 1.3), hold=1.0),
-                        landing=Landing((0.5, -0.4), approach=1.1, final=0.8, hold=1.0))
+                        (Setpoint((-0.4, 0.5, 1.4), hold=1.0),),
+                        Landing((0.5, -0.4), approach=1.1, final=0.8, hold=1.0),
+                        fused=True, blind=3.0)
     viewer = tmp_path / 'foxglove.yaml'
     params = yaml.safe_load((REPO / 'config' / 'foxglove_slow_link.yaml').read_text())
     params['/**']['ros__parameters']['foxglove']['port'] = 0
@@ -107,8 +110,16 @@ def test_the_same_mission_flies_a_px4_vehicle(tmp_path):
     report = FlightReport.from_log(log)
     print(report.summary())
     assert log.failure == '', log.failure
-    assert [e.source for e in log.setpoints] == ['ground', 'onboard', 'onboard']
+    assert [e.source for e in log.setpoints] == ['fused', 'fused', 'onboard', 'onboard']
+    assert [e.controller_inputs for e in log.setpoints[:2]] == [('/fused/pose', '/setpoint')] * 2
     assert all(s.reached for s in report.setpoints)
+    # The ground station gave no pose for the 3 s (its poses' stamps say so); the filter
+    # went on at its rate on the onboard pose and the autopilot's odometry, within 10 cm
+    # of the truth all along.
+    blind = report.blind
+    assert blind is not None and blind.covered_s >= 3.0 and blind.ground_gap_s >= 3.0, blind
+    assert blind.fused_samples > 0 and blind.fused_gap_s <= 0.25, blind
+    assert blind.fused_max_m <= 0.10, blind
     assert report.landing is not None and report.landing.touchdown[2] < 0.01
     assert report.landing.error_m <= 0.3
     assert not any(log.exit_codes.values()), log.exit_codes

@@ -153,3 +153,32 @@ def test_following_is_scored_on_both_truths_and_kept(tmp_path):
     assert FlightReport.from_log(loaded).follow == follow
     assert loaded.follow_inputs == log.follow_inputs
     assert FlightReport.from_log(make_log()).follow is None
+
+
+def test_the_fused_estimate_is_scored_while_the_ground_cameras_are_covered(tmp_path):
+    """Ground poses every 0.1 s but while the cameras were covered, the first after them
+    before the mission knew they were uncovered; the fused estimate every 20 ms, 2 cm off
+    the truth but for one pose 6 cm off inside the gap and one 50 cm off outside it."""
+    log = make_log()
+    frames = log.truth.stamps
+    seen = (frames <= frames[15]) | (frames >= frames[31])
+    stamps = np.append(frames[seen], frames[30] + 60 * MS)           # 1.56 s without a pose
+    order = np.argsort(stamps)
+    log.ground = track(stamps[order], np.zeros((len(stamps), 3)), np.zeros(len(stamps)))
+    log.blind_start_ns, log.blind_end_ns = int(frames[15] + 10 * MS), int(frames[30] + 80 * MS)
+    stamps = T0 + np.arange(0, 4900, 20, dtype=np.int64) * MS
+    t = (stamps - T0) * 1e-9
+    positions = np.column_stack([t, 0.5 * t + 0.02, np.full_like(t, 1.5)])
+    positions[np.searchsorted(stamps, frames[20])] += [0.0, 0.04, 0.0]     # 6 cm
+    positions[np.searchsorted(stamps, frames[40])] += [0.5, 0.0, 0.0]     # after: not scored
+    log.fused = track(stamps, positions, 0.1 * t)
+    blind = FlightReport.from_log(log).blind
+    assert blind.covered_s == pytest.approx(1.57)
+    assert blind.ground_gap_s == pytest.approx(1.56)
+    assert blind.fused_samples == 79 and blind.fused_gap_s == pytest.approx(0.02)
+    assert blind.fused_max_m == pytest.approx(0.06)
+    assert blind.fused_rms_m == pytest.approx(math.sqrt((78 * 0.02**2 + 0.06**2) / 79))
+    assert 'no ground pose for 1.6 s' in FlightReport.from_log(log).summary()
+    log.save(tmp_path / 'flight.npz')
+    assert FlightReport.from_log(FlightLog.load(tmp_path / 'flight.npz')).blind == blind
+    assert FlightReport.from_log(make_log()).blind is None

@@ -28,6 +28,10 @@ the summary adds what the EKF reported over the flight.
 `SCENARIO=follow` (`--scenario follow`, any vehicle) follows a target driving on the
 ground after the hold, with target_tracker_node and target_follower_node; the summary
 adds how close the vehicle stayed to it.
+`SCENARIO=blind` (`--scenario blind`, any vehicle) flies the hold and two setpoints on
+the pose filter's estimate (fused/pose) and covers the ground cameras for the first 3 s
+of the way to the first setpoint; the summary adds how far the estimate was from the
+truth while they saw nothing.
 
 `make demo HOSTS=2` (`--hosts 2`, root) runs the ground station and the vehicle on two
 hosts, network namespaces joined by a radio link of 20 +- 10 ms and 2 % loss

@@ -2,8 +2,8 @@
 
 A `FlightLog` holds every pose of the flight by source (the simulator's `truth/pose`,
 the ground station's `ground/pose`, the onboard `onboard/pose`, the autopilot's
-`autopilot/odom`, the pose filter's `fused/pose`), the velocity commands, the camera frame stamps and the mission's
-events; `FlightReport.from_log` scores it:
+`autopilot/odom`, the pose filter's `fused/pose`), the velocity commands, the camera
+frame stamps and the mission's events; `FlightReport.from_log` scores it:
 
 - each pose source against truth: a vision pose is stamped with its image's stamp, for
   which the simulator published the truth, so they are matched exactly by stamp; the
@@ -14,6 +14,8 @@ events; `FlightReport.from_log` scores it:
 - each setpoint (section 5: hold, move through setpoints): the true distance to it
   over the hold the mission accepted, as judged by the vision pose it flew on;
 - the landing: the true touchdown point's horizontal distance to the pad;
+- the ground cameras covered mid-flight: the fused estimate against the truth between
+  the last ground pose before and the first after;
 - following a moving target: the vehicle's true horizontal distance to the target's
   true centre over the scored span, and the vision estimate of the target (target/pose)
   against its truth (both stamped with the onboard image's stamp);
@@ -138,6 +140,9 @@ class FlightLog:
     link_restored_ns: int | None = None
     link_reported_ns: int | None = None
     link_heard_again_ns: int | None = None
+    # The ground cameras covered mid-flight (Scenario.blind): covered, uncovered.
+    blind_start_ns: int | None = None
+    blind_end_ns: int | None = None
     # CPU time of the graph's processes (and the mission's) by host, s: 'ground', 'air';
     # over run_s s from the graph's start to its stop.
     cpu_s: dict[str, float] = field(default_factory=dict)
@@ -244,6 +249,17 @@ class FollowScore:
 
 
 @dataclass(frozen=True)
+class BlindScore:
+    """The ground cameras covered mid-flight, and the fused estimate meanwhile."""
+    covered_s: float                 # from covering the cameras to uncovering them
+    ground_gap_s: float              # stamps of the last ground pose before, first after
+    fused_samples: int               # fused poses stamped in that gap
+    fused_gap_s: float               # the longest time between two of them (and the ends)
+    fused_max_m: float               # their largest error against the truth
+    fused_rms_m: float
+
+
+@dataclass(frozen=True)
 class FlightReport:
     scenario: str
     sources: dict[str, SourceScore]
@@ -259,6 +275,7 @@ class FlightReport:
     failed_logs: dict[str, str]      # the end of the log of each whose status was not 0
     ekf: EkfScore | None = None      # None without EKF_STATUS_REPORT in the window
     follow: FollowScore | None = None   # None unless the mission followed a target
+    blind: BlindScore | None = None     # None unless the ground cameras were covered
 
     @classmethod
     def from_log(cls, log: FlightLog) -> 'FlightReport':
@@ -281,7 +298,7 @@ class FlightReport:
         return cls(log.scenario, sources, score_commands(log), setpoints, landing,
                    frames['ground'], frames['onboard'], (end - start) * 1e-9, window,
                    log.failure, log.exit_codes, log.failed_logs, score_ekf(log.ekf, start, end),
-                   score_follow(log))
+                   score_follow(log), score_blind(log))
 
     def summary(self) -> str:
         lines = [f'scenario {self.scenario}: ' + (f'FAILED: {self.failure}' if self.failure
@@ -331,6 +348,12 @@ class FlightReport:
                          f'{f.error_max_m * 100:.1f} cm; target/pose ({f.estimates}) against '
                          f'truth: RMSE {f.estimate_rmse_m * 100:.2f} cm, heading '
                          f'{f.heading_rmse_deg:.2f} deg')
+        if (b := self.blind) is not None:
+            lines.append(f'ground cameras covered {b.covered_s:.1f} s (no ground pose for '
+                         f'{b.ground_gap_s:.1f} s): fused {b.fused_samples} poses meanwhile '
+                         f'(at most {b.fused_gap_s * 1e3:.0f} ms apart), '
+                         f'error max {b.fused_max_m * 100:.1f} cm, RMS '
+                         f'{b.fused_rms_m * 100:.1f} cm')
         if self.landing is not None:
             x, y, _ = self.landing.touchdown
             lines.append(f'landing: touchdown at ({x:+.3f}, {y:+.3f}) m, '
@@ -466,6 +489,26 @@ def within(track: PoseTrack, stamps: np.ndarray) -> np.ndarray:
     if not len(track):
         return np.zeros(len(stamps), bool)
     return (stamps >= track.stamps[0]) & (stamps <= track.stamps[-1])
+
+
+def score_blind(log: FlightLog) -> BlindScore | None:
+    """The fused poses stamped between the last ground pose before the cameras were
+    covered and the first after, against the truth interpolated at their stamps; None
+    if the cameras were not covered or no ground pose followed."""
+    start, end = log.blind_start_ns, log.blind_end_ns
+    ground = log.ground.stamps
+    if start is None or end is None or not (ground > end).any() or not (ground < start).any():
+        return None
+    last = int(ground[ground < start].max())     # the cameras were covered before `start`
+    first = int(ground[ground > last].min())      # none lies in between: the covered frames
+    fused = log.fused
+    keep = (fused.stamps >= last) & (fused.stamps <= first) & within(log.truth, fused.stamps)
+    true_p, _ = interpolate(log.truth, fused.stamps[keep]) if keep.any() else (None, None)
+    error = (np.linalg.norm(fused.positions[keep] - true_p, axis=1) if keep.any()
+             else np.zeros(0))
+    gap = np.diff(np.concatenate([[last], fused.stamps[keep], [first]])).max() * 1e-9
+    return BlindScore((end - start) * 1e-9, (first - last) * 1e-9, int(keep.sum()),
+                      float(gap), float(error.max()) if len(error) else math.nan, rms(error))
 
 
 @dataclass(frozen=True)

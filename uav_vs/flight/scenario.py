@@ -15,8 +15,9 @@
     target_follower_node       onboard images, placed on the ground from ground/pose,
                                becomes the setpoint; started after the hold
     pose_filter_node           with Configs.pose_filter (the demo's): fused/pose from both
-                               vision poses, recorded and scored beside them; the
-                               controller does not fly on it
+                               vision poses and autopilot/odom, recorded and scored beside
+                               them; the controller flies the hold and the setpoints on it
+                               in a `fused` scenario
 
 and flies the mission: the relay's `set_guided`, `arm`, `takeoff`, `set_guided` again
 (PX4 holds in AUTO.LOITER after its takeoff); the controller's
@@ -97,7 +98,12 @@ class Scenario:
 
     With `gps_denied` the autopilot has no GPS: the relay feeds it the ground station's
     pose as external navigation (vision_pose_topic, ekf_origin), and ArduPilot SITL runs
-    with config/ardupilot_gps_denied.parm."""
+    with config/ardupilot_gps_denied.parm.
+
+    With `fused` the controller flies the hold and the setpoints on the pose filter's
+    estimate (fused/pose; Configs.pose_filter), and with `blind` the ground cameras are
+    covered for that many seconds from the start of the flight to the first setpoint
+    (sim_world's ground_cameras/enable), the setpoint held only once they see again."""
 
     name: str
     takeoff_height: float
@@ -106,6 +112,8 @@ class Scenario:
     landing: Landing | None = None
     gps_denied: bool = False
     follow: Follow | None = None
+    fused: bool = False
+    blind: float = 0.0           # s
 
 
 HOLD = Scenario('hold', 1.5, Setpoint((0.0, 0.0, 1.5), hold=5.0))
@@ -120,7 +128,10 @@ DEMO = Scenario('demo', 1.5, Setpoint((0.0, 0.0, 1.5), hold=3.0), SETPOINTS.setp
                 Landing((0.6, 0.4)))
 GPS_DENIED = Scenario('gps_denied', 1.5, Setpoint((0.0, 0.0, 1.5), hold=5.0), gps_denied=True)
 FOLLOW = Scenario('follow', 1.5, Setpoint((0.0, 0.0, 1.5)), follow=Follow())
-SCENARIOS = {s.name: s for s in (HOLD, SETPOINTS, LAND_ON_PAD, DEMO, GPS_DENIED, FOLLOW)}
+BLIND = Scenario('blind', 1.5, Setpoint((0.0, 0.0, 1.5), hold=3.0), SETPOINTS.setpoints[:2],
+                 Landing((0.6, 0.4)), fused=True, blind=3.0)
+SCENARIOS = {s.name: s for s in (HOLD, SETPOINTS, LAND_ON_PAD, DEMO, GPS_DENIED, FOLLOW,
+                                 BLIND)}
 # The parameters ArduPilot flies GPS_DENIED with, after its defaults.
 GPS_DENIED_PARAMS = default_config_path('ardupilot_gps_denied.parm')
 
@@ -269,7 +280,15 @@ class _Mission:
         self.events: dict = dict(setpoints=[], pad=scenario.landing.pad if scenario.landing
                                  else None)
 
+    @property
+    def _source(self) -> str:
+        """The pose the controller flies the hold and the setpoints on."""
+        return 'fused' if self.scenario.fused else 'ground'
+
     def run(self, startup_timeout: float) -> FlightLog:
+        if self.scenario.fused and self.configs.pose_filter is None:
+            raise ValueError(f'scenario {self.scenario.name} flies on fused/pose: '
+                             'Configs.pose_filter must name the pose filter\'s params file')
         self.cameras = list(read_params_file(self.configs.ground)['cameras.names'])
         self.rec = FlightRecorder(self.cameras[0], self.ns,
                                   self.member.start if self.member else (0.0, 0.0))
@@ -379,7 +398,7 @@ class _Mission:
                 a for f in (c.frames, c.ground, c.onboard) for a in ('--params-file', str(f))])
         if c.foxglove is not None:
             self._start('foxglove_node', 'foxglove_node', ['--params-file', str(c.foxglove)])
-        self._start_controller('ground')
+        self._start_controller(self._source)
         for sim in ('sim_world', 'sim_cameras'):
             if sim in self.procs:
                 self._wait(sim, lambda: f'{self.ns}/{sim}' in self.rec.reporting, timeout)
@@ -443,11 +462,12 @@ class _Mission:
     def _fly(self, startup_timeout: float) -> None:
         rec, s = self.rec, self.scenario
         rec.prepare((Trigger, 'set_guided'), (SetBool, 'arm'), (Trigger, 'takeoff'),
-                    (Trigger, 'land'))
+                    (Trigger, 'land'), *([(SetBool, 'ground_cameras/enable')] if s.blind else []))
         self._wait('the relay to connect and the vehicle to be ready to arm',
                    lambda: rec.relay.get('link') == 'connected'
                    and rec.relay.get('prearm_ok') == 'True', startup_timeout)
         self._wait('ground/pose', lambda: self._fresh('ground'), startup_timeout)
+        self._wait(f'{self._source}/pose', lambda: self._fresh(self._source), startup_timeout)
         rec.call(Trigger, 'set_guided', Trigger.Request(), 15.0)
         rec.call(SetBool, 'arm', SetBool.Request(data=True), 15.0)
         self.events['takeoff_ns'] = time.time_ns()
@@ -455,7 +475,7 @@ class _Mission:
         # PX4 holds in AUTO.LOITER after a takeoff: back to OFFBOARD (ArduPilot stays GUIDED).
         rec.call(Trigger, 'set_guided', Trigger.Request(), 15.0)
         self._enable_controller()
-        self._fly_to('hold', s.hold, 'ground')
+        self._fly_to('hold', s.hold, self._source)
         if self.cut_link > 0:
             self._cut_link(self.cut_link)
         if s.follow is not None:
@@ -463,7 +483,7 @@ class _Mission:
         if s.setpoints or s.landing is not None:
             self._start_onboard()
         for k, sp in enumerate(s.setpoints, 1):
-            self._fly_to(f'setpoint {k}', sp, 'ground')
+            self._fly_to(f'setpoint {k}', sp, self._source, blind=s.blind if k == 1 else 0.0)
         if s.landing is not None:
             self._land_on_pad(s.landing)
         else:
@@ -504,15 +524,24 @@ class _Mission:
         latest = self.rec.latest.get(source)
         return latest is not None and time.time_ns() - latest[0] < max_age * 1e9
 
-    def _fly_to(self, name: str, sp: Setpoint, source: str) -> None:
-        """Send `sp`; return once the `source` vision pose has stayed within its
-        tolerance for `sp.hold` s (judged on the poses' stamps)."""
+    def _fly_to(self, name: str, sp: Setpoint, source: str, blind: float = 0.0) -> None:
+        """Send `sp`; return once the `source` pose has stayed within its tolerance for
+        `sp.hold` s (judged on the poses' stamps). With `blind`, the ground cameras are
+        covered for that many seconds from the start, and it returns only once they see."""
         event = SetpointEvent(name, source, (*map(float, sp.position), float(sp.yaw)),
                               time.time_ns())
         self.events['setpoints'].append(event)
         self.rec.set_setpoint(sp.position, sp.yaw)
+        covered = blind > 0
+        if covered:
+            self._cover_ground_cameras(True)
+        uncover_at = time.monotonic() + blind
 
         def held() -> bool:
+            nonlocal covered
+            if covered and time.monotonic() >= uncover_at:
+                self._cover_ground_cameras(False)
+                covered = False
             if not self._fresh(source):
                 event.settled_ns = None
                 return False
@@ -523,10 +552,15 @@ class _Mission:
                 event.settled_ns = stamp
             elif stamp - event.settled_ns >= sp.hold * 1e9:
                 event.reached_ns = stamp
-            return event.reached_ns is not None
+            return event.reached_ns is not None and not covered
 
         self._wait(f'{name} {sp.position} on {source}/pose', held, sp.timeout)
         event.controller_inputs = self.rec.subscriptions('fuzzy_controller_node')
+
+    def _cover_ground_cameras(self, cover: bool) -> None:
+        """Cover (uncover) the simulated ground cameras: no frame, no ground pose."""
+        self.rec.call(SetBool, 'ground_cameras/enable', SetBool.Request(data=not cover), 5.0)
+        self.events['blind_start_ns' if cover else 'blind_end_ns'] = time.time_ns()
 
     def _start_onboard(self) -> None:
         """Start homography_pose_node at the hover once every ground station pose of the

@@ -34,6 +34,8 @@ sim_world that renders the ground cameras reads the others' (`fleet.names`, each
 `fleet.<name>.truth_connection`, `.system_id`, `.start` and `.landmarks`, a params file
 of its landmark colours such as config/landmarks_uav2.yaml), draws them all and publishes
 each one's truth at the ground frames' instants on `<name>/truth/pose`.
+The service `ground_cameras/enable` (std_srvs/SetBool) covers the ground cameras (false:
+they deliver no frame, counted as `blind_frames`; the truth goes on) and uncovers them.
 Every parameter is read-only: the world, its vehicle and cameras are built at start-up.
 """
 import math
@@ -50,6 +52,7 @@ from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
+from std_srvs.srv import SetBool
 
 from uav_vs.autopilot.frames import euler_to_quat
 from uav_vs.nodes.homography_pose_node import ONBOARD_PARAMS
@@ -338,7 +341,10 @@ class SimWorldNode(Node):
                                  for name in fleet]
         self.target_truth_pub = self.create_publisher(PoseStamped, 'truth/target', 50)
         self.counts = dict(ground_frames=0, onboard_frames=0, onboard_too_low=0,
-                           dropped_frames=0, occluded_landmarks=0)
+                           dropped_frames=0, occluded_landmarks=0, blind_frames=0)
+        self.ground_enabled = True
+        if p['ground.rate'] > 0:
+            self.create_service(SetBool, 'ground_cameras/enable', self.on_enable_ground)
         self.render_ms = dict(ground_render_ms=float('nan'), onboard_render_ms=float('nan'))
         if p['ground.rate'] > 0:
             self.create_timer(1.0 / p['ground.rate'], self.on_ground)
@@ -424,11 +430,22 @@ class SimWorldNode(Node):
             self.get_clock().now().nanoseconds * 1e-9
         self.delay_line.put(time.monotonic() + wait, publish)
 
+    def on_enable_ground(self, request: SetBool.Request, response: SetBool.Response
+                         ) -> SetBool.Response:
+        self.ground_enabled = request.data
+        response.success, response.message = True, ('ground cameras uncovered' if request.data
+                                                    else 'ground cameras covered')
+        self.get_logger().info(response.message)
+        return response
+
     def on_ground(self) -> None:
         state, header = self._sample()
         others = self.world.other_states()
         for pub, other in zip(self.fleet_truth_pubs, others):
             pub.publish(pose_to_msg(other.position, other.quaternion, header))
+        if not self.ground_enabled:
+            self.counts['blind_frames'] += 1
+            return
         start = time.perf_counter()
         lags = None if self.lags is None else self.lags.sample()
         images = self.world.ground_images(state, lags, others)
