@@ -295,14 +295,17 @@ def replay_at_rate_0(bags: list[Path], ros_node, tmp_path: Path) -> None:
     for k, bag in enumerate(bags):
         with Bag(bag) as b:
             remaps = [f'{t}:=/b{k}/{t.lstrip("/")}' for t in b.topics]
-        procs.append(start('bag_play', [str(bag), '--rate', '0', '--remap', *remaps],
-                           tmp_path / 'logs', f'play{k}'))
+        # Each player waits for the probe's subscriptions, however long discovery takes on
+        # a loaded machine (its 5 s default may pass first: what it publishes before a
+        # subscriber matched is not delivered, volatile as the bags offer it).
+        procs.append(start('bag_play', [str(bag), '--rate', '0', '--wait-subscribers', '50',
+                                        '--remap', *remaps], tmp_path / 'logs', f'play{k}'))
     try:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 120
         for p in procs:
             p.wait(max(deadline - time.monotonic(), 1))
         total = sum(len(v) for v in expected.values())
-        wait_for(lambda: probe.count() >= total, 10)
+        wait_for(lambda: probe.count() >= total, 60)
     finally:
         graph.stop(procs)
     logs = {k: (tmp_path / 'logs' / f'play{k}.log').read_text() for k in range(len(bags))}
@@ -442,7 +445,10 @@ def test_best_effort_recording_subscribes_best_effort_to_a_reliable_publisher(ro
         assert rec.wait(10) == 0
     finally:
         graph.stop([rec])
-    assert [deserialize_message(r, String) for r in bag_messages(out)['/chat']] == sent
+    # Best effort: what went out before the recorder's side had matched the publisher
+    # (the publisher may see the subscription first) is lost; from then on, nothing.
+    got = [deserialize_message(r, String) for r in bag_messages(out)['/chat']]
+    assert got and got == sent[len(sent) - len(got):], got
     meta = yaml.safe_load((out / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     offered = meta['topics_with_message_count'][0]['topic_metadata']['offered_qos_profiles']
     assert offered[0]['reliability'] == 'reliable'
