@@ -93,9 +93,13 @@ def test_vision_poses_match_the_sitl_physics(flight):
         score = report.sources[name]
         assert score.samples > 50, (name, score)
         assert score.position_rmse_m <= 0.075 and score.yaw_rmse_deg <= 3.0, (name, score)
-    # The autopilot's own estimate (EKF3 on its GPS and IMU) is the third opinion.
+    # The autopilot's own estimate (EKF3 on its GPS and IMU) is the third opinion, and the
+    # pose filter's (both vision poses, EKF3's velocity and yaw rate) a fourth, as accurate
+    # as the vision poses it fuses.
     odom = report.sources['odom']
     assert odom.samples > 50 and odom.position_rmse_m <= 0.5, odom
+    fused = report.sources['fused']
+    assert fused.samples > 50 and fused.position_rmse_m <= 0.075, fused
 
 
 def test_without_gps_arducopter_flies_on_the_ground_stations_pose(gps_denied_flight):
@@ -113,9 +117,12 @@ def test_without_gps_arducopter_flies_on_the_ground_stations_pose(gps_denied_fli
     assert ekf is not None and ekf.reports >= 10, ekf
     assert ekf.navigating and ekf.gps_fix_max < 2, ekf     # never the fallback, never a GPS fix
     assert ekf.pos_horiz_ratio_max < 1.0 and ekf.pos_vert_ratio_max < 1.0, ekf
-    # The autopilot's estimate is now the vision pose fused with its IMU: near the truth.
+    # The autopilot's estimate is now the vision pose fused with its IMU: near the truth;
+    # beside it the pose filter's, on the same ground pose and EKF3's velocity.
     odom = report.sources['odom']
     assert odom.samples > 50 and odom.position_rmse_m <= 0.15, odom
+    fused = report.sources['fused']
+    assert fused.samples > 50 and fused.position_rmse_m <= 0.075, fused
     assert 'autopilot EKF over the flight' in stdout
     assert not any(log.exit_codes.values()), (log.exit_codes, log.failed_logs)
 
