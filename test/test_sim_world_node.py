@@ -12,6 +12,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
+from std_srvs.srv import SetBool
 
 from conftest import REPO, wait_for
 from uav_vs.graph import executable
@@ -57,6 +58,25 @@ def test_publishes_ground_images_and_truth_of_the_vehicle_at_home(ros_node, proc
     np.testing.assert_allclose(position, 0.0, atol=1e-9)
     assert yaw_of(q) == pytest.approx(math.pi / 2)
     assert got['onboard'] == []            # on the ground, the onboard camera sees nothing
+
+    # Covered (ground_cameras/enable false), the ground cameras deliver nothing sampled
+    # after the answer while the truth goes on; uncovered, they deliver again.
+    enable = ros_node.create_client(SetBool, '/ground_cameras/enable')
+    assert enable.wait_for_service(timeout_sec=10)
+
+    def cover(on: bool) -> int:
+        future = enable.call_async(SetBool.Request(data=not on))
+        assert wait_for(future.done, 10) and future.result().success
+        return ros_node.get_clock().now().nanoseconds
+
+    def after(key: str, ns: int) -> list:
+        return [m for m in got[key] if stamp_to_ns(m.header.stamp) > ns]
+
+    covered = cover(True)
+    assert wait_for(lambda: len(after('truth', covered)) >= 20, 30)
+    assert after('image', covered) == [] and after('info', covered) == []
+    uncovered = cover(False)
+    assert wait_for(lambda: after('image', uncovered) and after('info', uncovered), 30)
 
 
 def test_the_ground_cameras_see_another_vehicle_where_its_truth_says(ros_node, processes):

@@ -503,9 +503,10 @@ def score_blind(log: FlightLog) -> BlindScore | None:
     first = int(ground[ground > last].min())      # none lies in between: the covered frames
     fused = log.fused
     keep = (fused.stamps >= last) & (fused.stamps <= first) & within(log.truth, fused.stamps)
-    true_p, _ = interpolate(log.truth, fused.stamps[keep]) if keep.any() else (None, None)
-    error = (np.linalg.norm(fused.positions[keep] - true_p, axis=1) if keep.any()
-             else np.zeros(0))
+    error = np.zeros(0)
+    if keep.any():
+        true_p, _ = interpolate(log.truth, fused.stamps[keep])
+        error = np.linalg.norm(fused.positions[keep] - true_p, axis=1)
     gap = np.diff(np.concatenate([[last], fused.stamps[keep], [first]])).max() * 1e-9
     return BlindScore((end - start) * 1e-9, (first - last) * 1e-9, int(keep.sum()),
                       float(gap), float(error.max()) if len(error) else math.nan, rms(error))

@@ -343,11 +343,10 @@ class SimWorldNode(Node):
         self.counts = dict(ground_frames=0, onboard_frames=0, onboard_too_low=0,
                            dropped_frames=0, occluded_landmarks=0, blind_frames=0)
         self.ground_enabled = True
-        if p['ground.rate'] > 0:
-            self.create_service(SetBool, 'ground_cameras/enable', self.on_enable_ground)
         self.render_ms = dict(ground_render_ms=float('nan'), onboard_render_ms=float('nan'))
         if p['ground.rate'] > 0:
             self.create_timer(1.0 / p['ground.rate'], self.on_ground)
+            self.create_service(SetBool, 'ground_cameras/enable', self.on_enable_ground)
         if p['onboard.rate'] > 0:
             self.create_timer(1.0 / p['onboard.rate'], self.on_onboard)
         self.diag = Diagnostics(self, hardware_id=where)
