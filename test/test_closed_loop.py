@@ -10,6 +10,7 @@ ROS graph itself is asked what the controller flew on.
 import re
 from collections import defaultdict
 
+import numpy as np
 import yaml
 from rclpy.serialization import deserialize_message
 from rosbags.typesys.base import Nodetype
@@ -176,13 +177,9 @@ def windows_in_bag(bag, cam: str) -> tuple[int, int, int, int, int]:
                 frames.add(stamp)
             elif kind == 'landmarks':
                 centres[stamp] = [(p.x, p.y) for p in msg.polygon.points if p.x == p.x]
-            else:
-                corners = [(p.x, p.y) for p in msg.points]
-                windows[stamp] = [(min(x for x, _ in corners[i:i + 8]),
-                                   min(y for _, y in corners[i:i + 8]),
-                                   max(x for x, _ in corners[i:i + 8]),
-                                   max(y for _, y in corners[i:i + 8]))
-                                  for i in range(0, len(corners), 8)]
+            else:       # LINE_LIST: each window's 4 sides, 8 points
+                corners = np.array([(p.x, p.y) for p in msg.points]).reshape(-1, 8, 2)
+                windows[stamp] = np.hstack([corners.min(axis=1), corners.max(axis=1)])
     windows = {stamp: boxes for stamp, boxes in windows.items() if stamp >= min(frames)}
     inside = found = 0
     for stamp, boxes in windows.items():
