@@ -59,18 +59,18 @@ $(UBUNTU_STAMP): $(SOURCES) requirements-ubuntu2404.txt
 
 # --dist loadscope: a module's tests run in one worker, so a module-scoped fixture (a SITL
 # flight, the fuzz harness's nodes) starts once, never twice on the same ports; in the
-# order test/conftest.py gives (--no-loadscope-reorder), the heavy modules on one worker
-# (test/scheduling.py). The JUnit record (for a CI's test view) gives each test's worker
-# and start time.
+# order test/conftest.py gives (--no-loadscope-reorder), the heavy modules on one worker,
+# the waiting ones on a third (test/scheduling.py). The JUnit record (for a CI's test view)
+# gives each test's worker and start time.
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 --dist loadscope --no-loadscope-reorder --durations=25 \
+	$(BIN)/python -m pytest -n 3 --dist loadscope --no-loadscope-reorder --durations=25 \
 	  --junitxml=build/test-results.xml test
 
 # The same suite with one core kept busy (a busy loop at nice 10), for anyone changing a
 # test that depends on timing: it must pass here too, and count no rerun.
 test-loaded: $(STAMP)
 	nice -n 10 $(BIN)/python -c 'while True: pass' & busy=$$!; \
-	$(BIN)/python -m pytest -n 2 --dist loadscope --no-loadscope-reorder test; rc=$$?; \
+	$(BIN)/python -m pytest -n 3 --dist loadscope --no-loadscope-reorder test; rc=$$?; \
 	  kill $$busy; exit $$rc
 
 test-ubuntu2404: export AMENT_PREFIX_PATH := $(abspath $(UBUNTU_VENV))

@@ -1,8 +1,13 @@
-"""How the suite's modules are shared between the two xdist workers (--dist loadscope):
-whole modules, as loadscope hands them out, but the heavy ones (conftest.HEAVY: whole
-graphs flown in real time, node storms on both cores) only to the first worker, one after
-the other; the other worker takes every other module, and the first helps with those
-once its heavy ones are done."""
+"""How the suite's modules are shared between the xdist workers (--dist loadscope, -n 3):
+whole modules, as loadscope hands them out, by what they ask of the machine.
+
+- heavy (conftest.HEAVY: whole graphs flown in real time, node storms on both cores): only
+  the first worker, one after the other; once they are done it helps with the rest;
+- waiting (conftest.WAITING: real-time MAVLink exchanges with the simulated vehicle, which
+  sleep for most of their time): only the last worker, when there are three or more;
+- every other module: the workers in between, then the last one once its own are done.
+
+With two workers the waiting modules are ordinary ones."""
 from pathlib import Path
 
 from xdist.scheduler import LoadScopeScheduling
@@ -10,16 +15,29 @@ from xdist.scheduler import LoadScopeScheduling
 
 class HeavyApartScheduling(LoadScopeScheduling):
     heavy: frozenset[str] = frozenset()
+    waiting: frozenset[str] = frozenset()
 
-    def _is_heavy(self, scope: str) -> bool:
-        return Path(scope.split('::')[0]).stem in self.heavy
+    def _kind(self, scope: str) -> str:
+        stem = Path(scope.split('::')[0]).stem
+        if stem in self.heavy:
+            return 'heavy'
+        if stem in self.waiting and len(self.nodes) > 2:
+            return 'waiting'
+        return 'other'
+
+    def _role(self, node) -> str:
+        if node is self.nodes[0]:
+            return 'heavy'
+        if len(self.nodes) > 2 and node is self.nodes[-1]:
+            return 'waiting'
+        return 'other'
 
     def _assign_work_unit(self, node) -> None:
-        first = node is self.nodes[0]
-        scope = next((s for s in self.workqueue if self._is_heavy(s) == first), None)
-        if scope is None and first:
-            scope = next(iter(self.workqueue))
-        if scope is None:      # only heavy modules left: they stay with the first worker
+        role = self._role(node)
+        scope = next((s for s in self.workqueue if self._kind(s) == role), None)
+        if scope is None and role != 'other':     # its own are done: help with the others
+            scope = next((s for s in self.workqueue if self._kind(s) == 'other'), None)
+        if scope is None:      # only heavy or waiting modules left: they stay with theirs
             return
         work_unit = self.workqueue.pop(scope)
         self.assigned_work.setdefault(node, {})[scope] = work_unit
