@@ -4,8 +4,9 @@ whole modules, as loadscope hands them out, by what they ask of the machine.
 - heavy (conftest.HEAVY: whole graphs flown in real time, node storms on both cores): only
   the first worker, one after the other; once they are done it helps with the rest;
 - waiting (conftest.WAITING: real-time MAVLink exchanges with the simulated vehicle, which
-  sleep for most of their time): only the last worker, when there are three or more;
-- every other module: the workers in between, then the last one once its own are done.
+  sleep for most of their time): only the last worker, when there are three or more, and
+  nothing else there, so that a heavy module shares the two cores with one other at most;
+- every other module: the workers in between.
 
 With two workers the waiting modules are ordinary ones."""
 from pathlib import Path
@@ -35,8 +36,8 @@ class HeavyApartScheduling(LoadScopeScheduling):
     def _assign_work_unit(self, node) -> None:
         role = self._role(node)
         scope = next((s for s in self.workqueue if self._kind(s) == role), None)
-        if scope is None and role != 'other':     # its own are done: help with the others
-            scope = next((s for s in self.workqueue if self._kind(s) == 'other'), None)
+        if scope is None and role != 'waiting':   # its own are done: help with the rest
+            scope = next((s for s in self.workqueue if self._kind(s) != 'heavy'), None)
         if scope is None:      # only heavy or waiting modules left: they stay with theirs
             return
         work_unit = self.workqueue.pop(scope)

@@ -18,7 +18,10 @@ def test_flight_services_and_odometry_with_the_ros2_command_line(processes, ros2
     try:
         start_relay(processes, connection, 'allow_arming:=true')
         start_controller(processes)
-        listed = lambda: ros2_cli('service', 'list', '--no-daemon').stdout.split()
+        # without the daemon the command line discovers for --spin-time (0.5 s by default):
+        # too short for every endpoint of two nodes on a loaded machine
+        listed = lambda: ros2_cli('service', 'list', '--no-daemon',
+                                  '--spin-time', '3').stdout.split()
         services = {'/arm', '/set_guided', '/takeoff', '/land', '/controller/enable'}
         assert wait_for(lambda: services <= set(listed()), 30, period=1.0), listed()
 
