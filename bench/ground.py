@@ -13,6 +13,7 @@ from bench.common import report, timeit
 from uav_vs.sim.ground_scene import GroundScene, figure_eight
 from uav_vs.vision.body_pose import solve_pose
 from uav_vs.vision.ground_config import default_config_path, load_ground_config, read_params_file
+from uav_vs.vision.pose_covariance import PixelNoise, landmark_covariances, pose_covariance
 from uav_vs.vision.triangulation import triangulate
 
 SUITE = 'ground'
@@ -51,6 +52,53 @@ def triangulation() -> None:
            **{f'ref_{k}': v for k, v in ref_acc.items()})
 
 
+def covariance() -> None:
+    """The ground pose's covariance per frame set (uav_vs.vision.pose_covariance: pixel
+    noise pooled from the residuals, each landmark's sigma^2 (J^T J)^-1, eq 26
+    linearised), on the frame sets of `triangulation`, after their triangulation and pose.
+    Reference: the same covariance from central differences of the whole chain (each of
+    the 24 centroid coordinates moved, triangulated and solved again); the largest
+    relative difference of their standard deviations is the accuracy figure."""
+    cfg = load_ground_config(read_params_file(default_config_path()))
+    rng = np.random.default_rng(0)
+    poses = [figure_eight(t) for t in np.arange(0.0, 10.0, 0.05)]
+    sets = [np.stack([c.project(cfg.layout @ p.R.T + p.position) for c in cfg.cameras])
+            + rng.normal(0.0, PIXEL_SIGMA, (len(cfg.cameras), len(cfg.layout), 2))
+            for p in poses]
+    solved = [(triangulate(cfg.cameras, px), px) for px in sets]
+    solved = [(tri, solve_pose(cfg.layout, tri.points), px) for tri, px in solved]
+    noise = PixelNoise()
+
+    def analytic(tri, pose, px) -> np.ndarray:
+        cov_x = landmark_covariances(cfg.cameras, tri, noise.update(tri))
+        return pose_covariance(cfg.layout, pose, cov_x)
+
+    def numeric(tri, pose, px) -> np.ndarray:
+        h, flat = 1e-3, px.reshape(-1)
+        G = np.empty((4, flat.size))
+        for j in range(flat.size):
+            moved = []
+            for step in (h, -h):
+                shifted = flat.copy()
+                shifted[j] += step
+                tri_j = triangulate(cfg.cameras, shifted.reshape(px.shape))
+                p = solve_pose(cfg.layout, tri_j.points)
+                moved.append(np.append(p.position, p.yaw))
+            G[:, j] = (moved[0] - moved[1]) / (2 * h)
+        return noise.sigma ** 2 * G @ G.T
+
+    frames = cycle(solved)
+    ms = timeit(lambda: analytic(*next(frames)), repeat=1000, warmup=20)
+    ref_ms = timeit(lambda: numeric(*next(frames)), repeat=50, warmup=2)
+    worst = 0.0
+    for item in solved[::10]:
+        a = np.sqrt(np.diag(analytic(*item))[[0, 1, 2, 5]])
+        b = np.sqrt(np.diag(numeric(*item)))
+        worst = max(worst, float(np.max(np.abs(a / b - 1))))
+    report(SUITE, 'ground/pose_covariance', ms, reference='central differences of the chain',
+           ref_ms=ref_ms, max_sd_difference=round(worst, 4))
+
+
 def render() -> None:
     """Simulator: one frame set of three 640x480 ground-camera images (ray-cast vehicle,
     textured ground, lighting, noise, distortion), the cost of a live 30 Hz simulation."""
@@ -60,7 +108,7 @@ def render() -> None:
     report(SUITE, 'ground/render', ms, cameras=len(scene.cameras))
 
 
-CASES: list[Callable[[], None]] = [triangulation, render]
+CASES: list[Callable[[], None]] = [triangulation, covariance, render]
 
 
 def main() -> None:

@@ -199,31 +199,48 @@ def test_committed_sample_bag():
     check_bag(path, 10.0, 80)
 
 
-def test_sample_bag_pose_chain_meets_the_accuracy_target():
-    """The bag is solvable end to end: centroids from a plain colour threshold (largest
-    connected component inside the configured HSV ranges, not the CamShift tracker) on the
-    decoded JPEG frames, triangulated (eq 24-25) and fed to eq 26, give position RMSE
-    <= 2 cm and yaw RMSE <= 1 deg against the bag's truth (the issue's node targets)."""
+def sample_bag_frames() -> list[dict]:
+    """The committed sample bag's messages, one dict (topic -> message) per stamp."""
     frames: dict[int, dict] = {}
     for topic, msgs in read_bag(REPO / 'bags' / 'ground_trinocular').items():
         for t_ns, msg in msgs:
             frames.setdefault(t_ns, {})[topic] = msg
+    return [frame for _, frame in sorted(frames.items())]
+
+
+def threshold_pixels(frame: dict) -> np.ndarray:
+    """(cameras, landmarks, 2) centroids from a plain colour threshold: the largest
+    connected component inside the configured HSV ranges, not the CamShift tracker."""
+    px = np.full((len(CONFIG.cameras), len(CONFIG.landmark_names), 2), np.nan)
+    for k, cam in enumerate(CONFIG.cameras):
+        img = cv2.imdecode(frame[f'{cam.name}/image_raw/compressed'].data, cv2.IMREAD_COLOR)
+        hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
+        for i in range(len(CONFIG.landmark_names)):
+            n, _, stats, centres = cv2.connectedComponentsWithStats(colour_mask(hsv, i))
+            if n > 1:
+                px[k, i] = centres[1 + np.argmax(stats[1:, cv2.CC_STAT_AREA])]
+    return px
+
+
+def truth_of(frame: dict) -> tuple[np.ndarray, float]:
+    """The frame's truth/pose: position and yaw."""
+    truth = frame['truth/pose'].pose
+    q = truth.orientation
+    yaw = np.arctan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+    return np.array([truth.position.x, truth.position.y, truth.position.z]), yaw
+
+
+def test_sample_bag_pose_chain_meets_the_accuracy_target():
+    """The bag is solvable end to end: centroids from a plain colour threshold on the
+    decoded JPEG frames, triangulated (eq 24-25) and fed to eq 26, give position RMSE
+    <= 2 cm and yaw RMSE <= 1 deg against the bag's truth (the issue's node targets)."""
     pos_err, yaw_err = [], []
-    for _, frame in sorted(frames.items()):
-        px = np.full((len(CONFIG.cameras), len(CONFIG.landmark_names), 2), np.nan)
-        for k, cam in enumerate(CONFIG.cameras):
-            img = cv2.imdecode(frame[f'{cam.name}/image_raw/compressed'].data, cv2.IMREAD_COLOR)
-            hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
-            for i in range(len(CONFIG.landmark_names)):
-                n, _, stats, centres = cv2.connectedComponentsWithStats(colour_mask(hsv, i))
-                if n > 1:
-                    px[k, i] = centres[1 + np.argmax(stats[1:, cv2.CC_STAT_AREA])]
-        pose = solve_pose(CONFIG.layout, triangulate(CONFIG.cameras, px).points)
-        truth = frame['truth/pose'].pose
-        q = truth.orientation
-        yaw = np.arctan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+    for frame in sample_bag_frames():
+        tri = triangulate(CONFIG.cameras, threshold_pixels(frame))
+        pose = solve_pose(CONFIG.layout, tri.points)
+        position, yaw = truth_of(frame)
         assert pose.ok
-        pos_err.append(pose.position - [truth.position.x, truth.position.y, truth.position.z])
+        pos_err.append(pose.position - position)
         yaw_err.append(np.angle(np.exp(1j * (pose.yaw - yaw))))
     assert np.sqrt(np.mean(np.sum(np.square(pos_err), axis=1))) <= 0.02
     assert np.degrees(np.sqrt(np.mean(np.square(yaw_err)))) <= 1.0

@@ -10,13 +10,14 @@ from pathlib import Path
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Header
 
 from conftest import REPO, refused_at_start, wait_for
-from uav_vs.ros.convert import msg_to_odometry, pose_to_msg, stamp_to_ns, yaw_quaternion
+from uav_vs.ros.convert import (msg_to_odometry, pose_cov_to_msg, pose_to_msg, stamp_to_ns,
+                                yaw_quaternion)
 from uav_vs.vision.ground_config import read_params_file
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -92,6 +93,54 @@ def test_two_sources_fused_better_than_either_and_quiet_when_they_stop(ros_node,
     rmse = math.sqrt(np.mean(np.square(errors)))
     assert len(errors) > 50 and rmse < 0.7 * math.sqrt(np.mean(np.square(raw))), rmse
     assert 0.0 < np.median(sigmas) < 0.03
+
+
+def test_a_pose_with_covariance_is_fused_with_the_covariance_it_carries(ros_node, processes):
+    """A vehicle at rest seen on one PoseWithCovarianceStamped topic: first with 0.2 m of
+    noise and that covariance, then with 0.02 m and that one. The fused variance follows
+    what the messages say (a hundredth of the variance in: over ten times smaller out),
+    the estimate stays within its own 4 sigma; a covariance with a zero diagonal is
+    malformed."""
+    processes('pose_filter_node', ['-p', 'pose_filter.covariance_topics:=[cov/pose]',
+                                   '-p', "pose_filter.odometry_topic:=''",
+                                   '-p', 'pose_filter.accel_sigma:=0.5',
+                                   '-p', 'pose_filter.diagnostics_period:=0.1'], label='filter')
+    fused: list[Odometry] = []
+    diagnostics: list[dict] = []
+    ros_node.create_subscription(Odometry, '/fused/odom', fused.append, RELIABLE)
+    ros_node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: diagnostics.extend(
+        {kv.key: kv.value for kv in s.values}
+        for s in m.status if s.name == '/pose_filter_node'), RELIABLE)
+    pub = ros_node.create_publisher(PoseWithCovarianceStamped, '/cov/pose', RELIABLE)
+    assert wait_for(lambda: pub.get_subscription_count() > 0, 30)
+    clock, rng = ros_node.get_clock(), np.random.default_rng(1)
+
+    def publish(sigma: float, n: int) -> None:
+        cov = np.diag([sigma ** 2] * 3 + [1e6, 1e6, 0.01 ** 2])
+        for _ in range(n):
+            header = Header(stamp=clock.now().to_msg(), frame_id='world')
+            pub.publish(pose_cov_to_msg(START + rng.normal(0.0, sigma, 3), yaw_quaternion(0.5),
+                                        cov, header))
+            time.sleep(1 / 30)
+
+    def applied() -> int:
+        return int(diagnostics[-1].get('cov/pose.applied', 0)) if diagnostics else 0
+
+    deadline = time.monotonic() + 30
+    while not applied() and time.monotonic() < deadline:
+        publish(0.2, 1)
+    publish(0.2, 45)
+    coarse = fused[-1]
+    publish(0.02, 45)
+    fine = fused[-1]
+    for msg in (coarse, fine):
+        position, *_ = msg_to_odometry(msg)
+        sd = np.sqrt(np.diag(np.reshape(msg.pose.covariance, (6, 6)))[:3])
+        assert np.all(np.abs(position - START) <= 4 * sd), (position, sd)
+    assert fine.pose.covariance[0] < coarse.pose.covariance[0] / 10
+    pub.publish(pose_cov_to_msg(START, yaw_quaternion(0.5), np.zeros((6, 6)),
+                                Header(stamp=clock.now().to_msg(), frame_id='world')))
+    assert wait_for(lambda: diagnostics and diagnostics[-1]['malformed'] == '1', 10)
 
 
 def test_a_bad_parameter_stops_the_node_with_one_line(tmp_path: Path):

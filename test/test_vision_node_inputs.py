@@ -9,7 +9,7 @@ calibration).
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
-from geometry_msgs.msg import PolygonStamped, PoseStamped
+from geometry_msgs.msg import PolygonStamped, PoseStamped, PoseWithCovarianceStamped
 from sensor_msgs.msg import CompressedImage, Image
 from std_msgs.msg import Bool, Header
 
@@ -23,7 +23,10 @@ from test_onboard_nodes import CONFIG as ONBOARD_CONFIG
 from uav_vs.ros.convert import (bgr_to_compressed, bgr_to_image, msg_to_pose, ns_to_stamp,
                                 points_to_polygon, polygon_to_array, stamp_to_ns)
 from uav_vs.sim.onboard_scene import OnboardScene
+from uav_vs.vision.body_pose import solve_pose
 from uav_vs.vision.ground_config import load_ground_config, read_params_file
+from uav_vs.vision.pose_covariance import landmark_covariances, pose_covariance
+from uav_vs.vision.triangulation import triangulate
 from uav_vs.vision.onboard_config import load_onboard_config
 
 S = 1_000_000_000
@@ -129,12 +132,16 @@ def test_target_node_survives_bad_images_and_a_future_stamp(ros_node, processes)
 
 
 def test_pose_node_takes_landmarks_after_one_stamped_in_the_future(ros_node, processes):
-    """cam1's landmarks once stamped in 2037 used to hold every later frame set."""
+    """cam1's landmarks once stamped in 2037 used to hold every later frame set. Each pose
+    also goes out with its covariance (uav_vs.vision.pose_covariance)."""
     ground = load_ground_config(read_params_file(GROUND_CONFIG))
     processes('trinocular_pose_node', ['--params-file', str(GROUND_CONFIG),
                                        '-p', 'trinocular.diagnostics_period:=0.2'])
     poses: list[PoseStamped] = []
     ros_node.create_subscription(PoseStamped, '/ground/pose', poses.append, 10)
+    with_cov: list[PoseWithCovarianceStamped] = []
+    ros_node.create_subscription(PoseWithCovarianceStamped, '/ground/pose_cov',
+                                 with_cov.append, 10)
     diags: dict = {}
     _collect_diagnostics(ros_node, diags)
     pubs = [ros_node.create_publisher(PolygonStamped, f'/{c.name}/landmarks', 10)
@@ -153,3 +160,13 @@ def test_pose_node_takes_landmarks_after_one_stamped_in_the_future(ros_node, pro
         assert wait_for(lambda: len(poses) == k + 1, 10), str(_last_diagnostics(diags, name))
     assert [stamp_to_ns(p.header.stamp) for p in poses] == [S, 2 * S, 3 * S]
     assert all(np.linalg.norm(msg_to_pose(p)[0] - truth) < 1e-6 for p in poses)
+    # the same poses with their covariance: exact centroids leave no residual, so the
+    # pixel noise is the floor (0.5 px), plus the bias (0.01 m), as the core computes it
+    assert wait_for(lambda: len(with_cov) == 3, 10)
+    pixels = np.stack(_project_layout(ground, truth, 2.5))
+    tri = triangulate(ground.cameras, pixels)
+    expected = pose_covariance(ground.layout, solve_pose(ground.layout, tri.points),
+                               landmark_covariances(ground.cameras, tri, 0.5), bias_sigma=0.01)
+    for plain, msg in zip(poses, with_cov):
+        assert msg.header == plain.header and msg.pose.pose == plain.pose
+        assert np.allclose(np.reshape(msg.pose.covariance, (6, 6)), expected, rtol=1e-6)

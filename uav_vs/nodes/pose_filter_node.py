@@ -3,7 +3,11 @@ pose_filter; the chapter's Fig. 6 compares the vision poses with a Kalman-filter
 
 Subscribes each of `pose_filter.pose_topics` (geometry_msgs/PoseStamped in
 `pose_filter.world_frame`: ground/pose, onboard/pose), each with its own standard
-deviations (`pose_filter.position_sigmas`, `.yaw_sigmas`, one per topic), and, unless it
+deviations (`pose_filter.position_sigmas`, `.yaw_sigmas`, one per topic); each of
+`pose_filter.covariance_topics` (geometry_msgs/PoseWithCovarianceStamped, e.g.
+trinocular_pose_node's ground/pose_cov) with the covariance it carries (its x, y, z and
+rotation-about-z block; a covariance that is not finite with a positive diagonal makes the
+message malformed); and, unless it
 is empty, `pose_filter.odometry_topic` (nav_msgs/Odometry, the relay's autopilot/odom:
 its velocity in base_link and yaw rate, and its position and yaw, each with its
 `pose_filter.odometry_*_sigma`). Every measurement is applied at its header stamp.
@@ -23,16 +27,16 @@ is counted, logged (throttled) and skipped. Every parameter is read-only.
 import math
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from std_msgs.msg import Header
 
 from uav_vs.control.pose_filter import (FilterParams, PoseFilter, odometry_measurement,
                                         pose_measurement, rot_z)
-from uav_vs.ros.convert import (MessageError, check_frame, msg_to_odometry, msg_to_pose_in,
-                                odometry_to_msg, pose_to_msg, stamp_to_ns, yaw_of,
-                                yaw_quaternion)
+from uav_vs.ros.convert import (MessageError, check_frame, msg_to_odometry, msg_to_pose_cov_in,
+                                msg_to_pose_in, odometry_to_msg, pose_to_msg, stamp_to_ns,
+                                yaw_of, yaw_quaternion)
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, ThrottledWarnings, run
 from uav_vs.ros.params import ParameterError, Param, T, declare
 
@@ -45,6 +49,8 @@ PARAMS = [
           'standard deviation of each pose topic\'s position, m per axis', 1e-4, 100.0),
     Param('pose_filter.yaw_sigmas', T.DOUBLE_ARRAY, [0.03, 0.05],
           'standard deviation of each pose topic\'s yaw, rad', 1e-4, 10.0),
+    Param('pose_filter.covariance_topics', T.STRING_ARRAY, [],
+          'vehicle poses with their own covariance (PoseWithCovarianceStamped) to fuse'),
     Param('pose_filter.odometry_topic', T.STRING, 'autopilot/odom',
           "the autopilot's odometry (nav_msgs/Odometry, the relay's autopilot/odom); '': none"),
     Param('pose_filter.odometry_position_sigma', T.DOUBLE, 1000.0,
@@ -86,7 +92,8 @@ class PoseFilterNode(Node):
             if len(p[key]) != len(topics):
                 raise ParameterError(f'{key}: expected one per pose_filter.pose_topics '
                                      f'({len(topics)}), got {len(p[key])}')
-        if not topics and not p['pose_filter.odometry_topic']:
+        covariance_topics = p['pose_filter.covariance_topics']
+        if not topics and not covariance_topics and not p['pose_filter.odometry_topic']:
             raise ParameterError('pose_filter.pose_topics: expected a topic, or an '
                                  'odometry_topic, got none')
         self.world, self.body = p['pose_filter.world_frame'], p['pose_filter.body_frame']
@@ -100,6 +107,9 @@ class PoseFilterNode(Node):
             cov = np.diag([sigma ** 2] * 3 + [yaw_sigma ** 2])
             self.create_subscription(PoseStamped, topic,
                                      lambda msg, t=topic, c=cov: self.on_pose(msg, t, c), 10)
+        for topic in covariance_topics:
+            self.create_subscription(PoseWithCovarianceStamped, topic,
+                                     lambda msg, t=topic: self.on_pose_cov(msg, t), 10)
         self.odometry = p['pose_filter.odometry_topic']
         if self.odometry:
             self.odometry_cov = np.diag(
@@ -115,7 +125,7 @@ class PoseFilterNode(Node):
         self.diag = Diagnostics(self)
         self.create_timer(1.0 / p['pose_filter.rate'], self.publish)
         self.create_timer(p['pose_filter.diagnostics_period'], self.publish_diagnostics)
-        inputs = [*topics, *([self.odometry] if self.odometry else [])]
+        inputs = [*topics, *covariance_topics, *([self.odometry] if self.odometry else [])]
         self.get_logger().info(f"{', '.join(self.resolve_topic_name(t) for t in inputs)} -> "
                                f"{self.resolve_topic_name('fused/odom')} at "
                                f"{p['pose_filter.rate']:g} Hz")
@@ -129,6 +139,17 @@ class PoseFilterNode(Node):
             return
         self.filter.add(pose_measurement(topic, stamp_to_ns(msg.header.stamp) * 1e-9,
                                          position, yaw, cov))
+
+    def on_pose_cov(self, msg: PoseWithCovarianceStamped, topic: str) -> None:
+        try:
+            position, q, cov = msg_to_pose_cov_in(msg, self.world)
+            yaw = yaw_of(q)
+        except MessageError as err:
+            self._malformed(f'{topic}: {err}')
+            return
+        index = [0, 1, 2, 5]                   # x, y, z, yaw in the message's 6 x 6
+        self.filter.add(pose_measurement(topic, stamp_to_ns(msg.header.stamp) * 1e-9,
+                                         position, yaw, cov[np.ix_(index, index)]))
 
     def on_odometry(self, msg: Odometry) -> None:
         try:

@@ -4,7 +4,11 @@ Subscribes `<camera>/landmarks` (geometry_msgs/PolygonStamped, one point per
 landmark in `landmarks.names` order: x, y = raw pixel centroid, z = confidence,
 NaN when not found) for every camera in `cameras.names`; synchronises them by stamp;
 triangulates (eq 24-25) and solves yaw + position (eq 26).
-Publishes `ground/pose` (PoseStamped, `world` ENU), `ground/landmarks`
+Publishes `ground/pose` (PoseStamped, `world` ENU), the same pose with its covariance on
+`ground/pose_cov` (PoseWithCovarianceStamped: the landmarks' pixel noise pooled from the
+triangulation residuals, never below `trinocular.pixel_sigma_floor`, propagated through
+eq 24-26, plus `trinocular.bias_sigma` on the position; uav_vs.vision.pose_covariance),
+`ground/landmarks`
 (PolygonStamped, 3D landmark positions in `world`, NaN where not triangulated) and
 /diagnostics. A frame set that gives no pose publishes none on ground/pose: why is the
 diagnostics' message and, every 5 s at most, a warning in the log.
@@ -20,11 +24,11 @@ camera silent for longer than `trinocular.input_error_after`, ERROR.
 from typing import Callable
 
 import numpy as np
-from geometry_msgs.msg import PolygonStamped, PoseStamped
+from geometry_msgs.msg import PolygonStamped, PoseStamped, PoseWithCovarianceStamped
 from std_msgs.msg import Header
 
-from uav_vs.ros.convert import (ns_to_stamp, points_to_polygon, polygon_to_array, pose_to_msg,
-                                stamp_to_ns)
+from uav_vs.ros.convert import (ns_to_stamp, points_to_polygon, polygon_to_array,
+                                pose_cov_to_msg, pose_to_msg, stamp_to_ns)
 from uav_vs.ros.image_input import InputLimits, error_text, stamp_params
 from uav_vs.ros.liveness import Silence
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, QuietPublisherNode, run
@@ -32,6 +36,7 @@ from uav_vs.ros.params import LiveParams, Param, ParameterError, T, declare
 from uav_vs.vision.body_pose import solve_pose
 from uav_vs.vision.frame_sync import FrameSync, ahead_of_clock
 from uav_vs.vision.ground_config import load_ground_config
+from uav_vs.vision.pose_covariance import PixelNoise, landmark_covariances, pose_covariance
 from uav_vs.vision.triangulation import triangulate
 
 from uav_vs.ros.ground_params import declare_cameras, declare_landmarks
@@ -53,6 +58,12 @@ NODE_PARAMS = [
           live=True),
     Param('trinocular.min_confidence', T.DOUBLE, 0.0,
           'centroids with a lower confidence are ignored', 0.0, 1.0, live=True),
+    Param('trinocular.pixel_sigma_floor', T.DOUBLE, 0.5,
+          "smallest pixel noise of the centroids ground/pose_cov's covariance assumes, px "
+          '(below it the residuals are taken for luck)', 0.01, 100.0, live=True),
+    Param('trinocular.bias_sigma', T.DOUBLE, 0.01,
+          "standard deviation of a position bias every camera shares (the rig's calibration, "
+          "the landmarks' survey), added to ground/pose_cov per axis, m", 0.0, 10.0, live=True),
     Param('trinocular.frame_id', T.STRING, 'world', 'frame of the published pose (ENU)'),
     Param('trinocular.diagnostics_period', T.DOUBLE, 1.0, 'diagnostics period, s (read-only: the '
           'timer is made at start-up)', 0.05, 60.0),
@@ -72,8 +83,10 @@ class TrinocularPoseNode(QuietPublisherNode):
         n_cams, n_lm = len(self.cfg.cameras), len(self.cfg.landmark_names)
         self.silence = [Silence() for _ in range(n_cams)]
         self.sync = FrameSync(n_cams, **self.sync_settings(p))
+        self.pixel_noise = PixelNoise()
         self.use(p)
         self.pose_pub = self.create_publisher(PoseStamped, 'ground/pose', 10)
+        self.pose_cov_pub = self.create_publisher(PoseWithCovarianceStamped, 'ground/pose_cov', 10)
         self.landmarks_pub = self.create_publisher(PolygonStamped, 'ground/landmarks', 10)
         for k, cam in enumerate(self.cfg.cameras if subscribe else []):
             self.create_subscription(PolygonStamped, f'{cam.name}/landmarks',
@@ -82,7 +95,8 @@ class TrinocularPoseNode(QuietPublisherNode):
         self.reported = dict(future=0, errors=0)
         self.last_error = ''
         self.last = dict(reason='no frame set yet', cameras_used=0, landmarks_used=0,
-                         reprojection_px=float('nan'), residual_m=float('nan'))
+                         reprojection_px=float('nan'), residual_m=float('nan'),
+                         pixel_sigma=float('nan'))
         self.n_lm = n_lm
         self.diag = Diagnostics(self)
         self.create_timer(p['trinocular.diagnostics_period'], self.publish_diagnostics)
@@ -109,6 +123,8 @@ class TrinocularPoseNode(QuietPublisherNode):
         self.method, self.pose_method = p['trinocular.method'], p['trinocular.pose_method']
         self.max_reproj = p['trinocular.max_reprojection_px']
         self.min_conf = p['trinocular.min_confidence']
+        self.pixel_noise.floor = p['trinocular.pixel_sigma_floor']
+        self.bias_sigma = p['trinocular.bias_sigma']
         limits = InputLimits.of(p, 'trinocular')
         self.future_tolerance_ns = int(limits.future_tolerance_s * 1e9)
         for silence in self.silence:
@@ -178,8 +194,16 @@ class TrinocularPoseNode(QuietPublisherNode):
                           max_reproj_px=self.max_reproj)
         pose = solve_pose(self.cfg.layout, tri.points, method=self.pose_method)
         header = Header(stamp=ns_to_stamp(frame_set.stamp_ns), frame_id=self.frame_id)
+        sigma = self.pixel_noise.update(tri)
         if pose.ok:
             self.pose_pub.publish(pose_to_msg(pose.position, pose.quaternion, header))
+            cov = pose_covariance(self.cfg.layout, pose,
+                                  landmark_covariances(self.cfg.cameras, tri, sigma),
+                                  # rigid falls back to eq 26, with a note, below 3 landmarks
+                                  yaw_only=self.pose_method == 'yaw' or bool(pose.reason),
+                                  bias_sigma=self.bias_sigma)
+            self.pose_cov_pub.publish(pose_cov_to_msg(pose.position, pose.quaternion, cov,
+                                                      header))
         else:
             self.get_logger().warn(f'no pose: {pose.reason}', throttle_duration_sec=5.0)
         self.counts['poses' if pose.ok else 'no_pose'] += 1
@@ -189,7 +213,7 @@ class TrinocularPoseNode(QuietPublisherNode):
                          cameras_used=frame_set.n_present, landmarks_used=pose.n_used,
                          reprojection_px=float(np.mean(tri.reproj_px[finite])) if finite.any()
                          else float('nan'),
-                         residual_m=pose.residual_rms)
+                         residual_m=pose.residual_rms, pixel_sigma=sigma)
 
     def input_problems(self) -> str:
         """Landmarks dropped as future, frame sets failed, since the last call."""

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import (Point, Point32, Polygon, PolygonStamped, PoseStamped,
-                               TransformStamped, TwistStamped)
+                               PoseWithCovarianceStamped, TransformStamped, TwistStamped)
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
@@ -243,6 +243,26 @@ def msg_to_pose_in(msg: PoseStamped, frame: str) -> tuple[np.ndarray, np.ndarray
     if not np.isfinite(position).all():
         raise MessageError('non-finite position')
     return position, q
+
+
+def pose_cov_to_msg(position: np.ndarray, quaternion_xyzw: np.ndarray, covariance: np.ndarray,
+                    header: Header) -> PoseWithCovarianceStamped:
+    """A pose with its 6x6 covariance (x, y, z, rotation about x, y, z: ROS order)."""
+    msg = PoseWithCovarianceStamped(header=header)
+    msg.pose.pose = pose_to_msg(position, quaternion_xyzw, header).pose
+    msg.pose.covariance = np.asarray(covariance, dtype=float).reshape(36)
+    return msg
+
+
+def msg_to_pose_cov_in(msg: PoseWithCovarianceStamped, frame: str
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """msg_to_pose_in of a pose with covariance, and its 6x6 covariance: MessageError
+    unless that is finite with a positive diagonal."""
+    position, q = msg_to_pose_in(PoseStamped(header=msg.header, pose=msg.pose.pose), frame)
+    cov = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)
+    if not (np.isfinite(cov).all() and np.all(np.diag(cov) > 0)):
+        raise MessageError('covariance not finite with a positive diagonal')
+    return position, q, cov
 
 
 def transform_to_msg(translation: np.ndarray, quaternion_xyzw: np.ndarray, header: Header,
