@@ -12,7 +12,8 @@ import numpy as np
 from bench.common import report, timeit
 from uav_vs.sim.ground_scene import GroundScene, figure_eight
 from uav_vs.vision.body_pose import solve_pose
-from uav_vs.vision.ground_config import default_config_path, load_ground_config, read_params_file
+from uav_vs.vision.ground_config import (GroundConfig, default_config_path, load_ground_config,
+                                        read_params_file)
 from uav_vs.vision.pose_covariance import PixelNoise, landmark_covariances, pose_covariance
 from uav_vs.vision.triangulation import triangulate
 
@@ -20,16 +21,23 @@ SUITE = 'ground'
 PIXEL_SIGMA = 0.5
 
 
-def triangulation() -> None:
-    """Triangulation (eq 24-25) + pose (eq 26) per frame set of 4 landmarks in 3 cameras,
-    eq 25 least squares vs OpenCV's DLT, on exact projections of the figure-eight with
-    0.5 px Gaussian centroid noise; mean position and yaw errors as accuracy figures."""
+def noisy_frame_sets() -> tuple[GroundConfig, list, list[np.ndarray]]:
+    """The default config, the figure-eight's poses every 0.05 s for 10 s, and each one's
+    centroids: exact projections of the landmarks with 0.5 px Gaussian noise."""
     cfg = load_ground_config(read_params_file(default_config_path()))
     rng = np.random.default_rng(0)
     poses = [figure_eight(t) for t in np.arange(0.0, 10.0, 0.05)]
     sets = [np.stack([c.project(cfg.layout @ p.R.T + p.position) for c in cfg.cameras])
             + rng.normal(0.0, PIXEL_SIGMA, (len(cfg.cameras), len(cfg.layout), 2))
             for p in poses]
+    return cfg, poses, sets
+
+
+def triangulation() -> None:
+    """Triangulation (eq 24-25) + pose (eq 26) per frame set of 4 landmarks in 3 cameras,
+    eq 25 least squares vs OpenCV's DLT, on exact projections of the figure-eight with
+    0.5 px Gaussian centroid noise; mean position and yaw errors as accuracy figures."""
+    cfg, poses, sets = noisy_frame_sets()
 
     def run(method: str) -> tuple[np.ndarray, dict]:
         frames = cycle(sets)
@@ -59,12 +67,7 @@ def covariance() -> None:
     Reference: the same covariance from central differences of the whole chain (each of
     the 24 centroid coordinates moved, triangulated and solved again); the largest
     relative difference of their standard deviations is the accuracy figure."""
-    cfg = load_ground_config(read_params_file(default_config_path()))
-    rng = np.random.default_rng(0)
-    poses = [figure_eight(t) for t in np.arange(0.0, 10.0, 0.05)]
-    sets = [np.stack([c.project(cfg.layout @ p.R.T + p.position) for c in cfg.cameras])
-            + rng.normal(0.0, PIXEL_SIGMA, (len(cfg.cameras), len(cfg.layout), 2))
-            for p in poses]
+    cfg, _, sets = noisy_frame_sets()
     solved = [(triangulate(cfg.cameras, px), px) for px in sets]
     solved = [(tri, solve_pose(cfg.layout, tri.points), px) for tri, px in solved]
     noise = PixelNoise()

@@ -25,17 +25,23 @@ VELOCITY, START = np.array([0.4, -0.2, 0.1]), np.array([1.0, 0.5, 1.5])
 SIGMAS = {'ground': 0.03, 'onboard': 0.05}
 
 
-def test_two_sources_fused_better_than_either_and_quiet_when_they_stop(ros_node, processes):
-    processes('pose_filter_node', ['-p', 'pose_filter.accel_sigma:=0.5',
-                                   '-p', 'pose_filter.position_sigmas:=[0.03, 0.05]',
-                                   '-p', 'pose_filter.timeout:=0.3',
-                                   '-p', 'pose_filter.diagnostics_period:=0.1'], label='filter')
+def listen(ros_node) -> tuple[list[Odometry], list[dict]]:
+    """What the filter publishes: fused/odom, and its /diagnostics (level, message, values)."""
     fused: list[Odometry] = []
     diagnostics: list[dict] = []
     ros_node.create_subscription(Odometry, '/fused/odom', fused.append, RELIABLE)
     ros_node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: diagnostics.extend(
         {'level': s.level[0], 'message': s.message, **{kv.key: kv.value for kv in s.values}}
         for s in m.status if s.name == '/pose_filter_node'), RELIABLE)
+    return fused, diagnostics
+
+
+def test_two_sources_fused_better_than_either_and_quiet_when_they_stop(ros_node, processes):
+    processes('pose_filter_node', ['-p', 'pose_filter.accel_sigma:=0.5',
+                                   '-p', 'pose_filter.position_sigmas:=[0.03, 0.05]',
+                                   '-p', 'pose_filter.timeout:=0.3',
+                                   '-p', 'pose_filter.diagnostics_period:=0.1'], label='filter')
+    fused, diagnostics = listen(ros_node)
     pubs = {s: ros_node.create_publisher(PoseStamped, f'/{s}/pose', RELIABLE) for s in SIGMAS}
     assert wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 30)
 
@@ -105,12 +111,7 @@ def test_a_pose_with_covariance_is_fused_with_the_covariance_it_carries(ros_node
                                    '-p', "pose_filter.odometry_topic:=''",
                                    '-p', 'pose_filter.accel_sigma:=0.5',
                                    '-p', 'pose_filter.diagnostics_period:=0.1'], label='filter')
-    fused: list[Odometry] = []
-    diagnostics: list[dict] = []
-    ros_node.create_subscription(Odometry, '/fused/odom', fused.append, RELIABLE)
-    ros_node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: diagnostics.extend(
-        {kv.key: kv.value for kv in s.values}
-        for s in m.status if s.name == '/pose_filter_node'), RELIABLE)
+    fused, diagnostics = listen(ros_node)
     pub = ros_node.create_publisher(PoseWithCovarianceStamped, '/cov/pose', RELIABLE)
     assert wait_for(lambda: pub.get_subscription_count() > 0, 30)
     clock, rng = ros_node.get_clock(), np.random.default_rng(1)
