@@ -20,7 +20,9 @@ view where the board lies on the ground (REP-103: x along the board's first row,
         --camera cam3=cam3.mp4 --intrinsics calibration/ --ground 0
 
 matches the cameras' frames by index (or by a `--sync` CSV of sync_index, camera,
-frame_index), solves every camera's R, t (uav_vs.vision.rig_calibration), and writes
+frame_index), solves every camera's R, t (uav_vs.vision.rig_calibration), with
+`--latency` (and a frame_time column in the CSV) each camera's latency after the first's
+too (uav_vs.vision.rig_timing), and writes
 `<out>/cameras.yaml`, the `cameras` block of config/ground_trinocular.yaml, and
 `<out>/rig_report.txt`.
 
@@ -70,6 +72,7 @@ from uav_vs.vision.ground_config import (flat_params, load_ground_config,  # noq
 from uav_vs.vision.landmark_survey import (Placement, SurveyError,  # noqa: E402
                                            detector_params, survey)
 from uav_vs.vision.rig_calibration import calibrate_rig  # noqa: E402
+from uav_vs.vision.rig_timing import calibrate_timed_rig, frame_gap, set_instants  # noqa: E402
 
 EPILOG = """examples:
   uav_vs_calibrate intrinsics --board board.yaml --name cam1 cam1_images/
@@ -125,8 +128,13 @@ def parser() -> argparse.ArgumentParser:
                           "first is the reference)")
     rig.add_argument('--intrinsics', type=Path, required=True,
                      help='the folder of the cameras\' camera_info files (<name>.yaml)')
-    rig.add_argument('--sync', type=Path, help='CSV of sync_index, camera, frame_index: '
-                     'which frames were taken together (default: the same frame index)')
+    rig.add_argument('--sync', type=Path, help='CSV of sync_index, camera, frame_index '
+                     '(and frame_time, s): which frames were taken together (default: the '
+                     'same frame index)')
+    rig.add_argument('--latency', action='store_true',
+                     help="measure each camera's latency after the first's while the board "
+                          "moves (cameras not triggered together; needs --sync with "
+                          "frame_time) and match their frames by the instant they show")
     rig.add_argument('--ground', type=int, required=True,
                      help='the sync index (frame) in which the board lies on the ground')
     rig.add_argument('--out', type=Path, default=Path('calibration'),
@@ -208,8 +216,10 @@ def rig(args: argparse.Namespace) -> None:
         if not sep or not name or not path:
             raise CalibrationInputError(f'--camera {spec!r}: expected NAME=PATH')
         sources[name] = Path(path)
-    sync = read_sync(args.sync) if args.sync else None
-    detections, intrinsics = {}, {}
+    sync, stamps = read_sync(args.sync) if args.sync else (None, {})
+    if args.latency and not stamps:
+        raise CalibrationInputError('--latency needs --sync with a frame_time column (s)')
+    detections, intrinsics, tracks = {}, {}, {}
     for name, path in sources.items():
         intrinsics[name] = read_camera_info(args.intrinsics / f'{name}.yaml')
         index: dict[str, int] = {}       # frame index of each image, found or not
@@ -218,11 +228,17 @@ def rig(args: argparse.Namespace) -> None:
             raise CalibrationInputError(f'{name}: images {size[0]}x{size[1]}, its camera_info '
                                         f'{intrinsics[name].size[0]}x{intrinsics[name].size[1]}')
         frames = {index[key]: det for key, det in found.items()}
+        tracks[name] = {stamps[name, f]: det for f, det in frames.items() if (name, f) in stamps}
         if sync is not None:
             frames = {sync[name, f]: det for f, det in frames.items() if (name, f) in sync}
         detections[name] = {str(f): det for f, det in frames.items()}
         print(f'{name}: the board found in {len(found)} of {count} images', flush=True)
-    result = calibrate_rig(board, detections, intrinsics, str(args.ground))
+    if args.latency:
+        ours = {key: when for key, when in stamps.items() if key[0] in sources}
+        result = calibrate_timed_rig(board, tracks, set_instants(sync, ours, next(iter(sources))),
+                                     intrinsics, str(args.ground), frame_gap(ours))
+    else:
+        result = calibrate_rig(board, detections, intrinsics, str(args.ground))
     report = '\n'.join(result.report()) + '\n'
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / 'cameras.yaml').write_text(result.cameras_yaml())
@@ -308,17 +324,23 @@ def read_cameras_block(path: Path) -> dict[str, object]:
     return flat_params(doc['cameras'], 'cameras.')
 
 
-def read_sync(path: Path) -> dict[tuple[str, int], int]:
-    """(camera, frame index) -> sync index, from a CSV with those three columns (a
-    camera named by its name, or by its number as 'cam_<n>')."""
+FrameKey = tuple[str, int]          # (camera, frame index)
+
+
+def read_sync(path: Path) -> tuple[dict[FrameKey, int], dict[FrameKey, float]]:
+    """(camera, frame index) -> sync index, and -> frame_time (s) when the CSV has that
+    column, from a CSV with those columns (a camera named by its name, or by its number
+    as 'cam_<n>')."""
     try:
         with open(path, newline='') as f:
             rows = list(csv.DictReader(f))
-        out = {}
+        sync, stamps = {}, {}
         for row in rows:
-            camera = row.get('camera') or f"cam_{row['cam_id']}"
-            out[camera, int(row['frame_index'])] = int(row['sync_index'])
-        return out
+            key = (row.get('camera') or f"cam_{row['cam_id']}", int(row['frame_index']))
+            sync[key] = int(row['sync_index'])
+            if row.get('frame_time') not in (None, ''):
+                stamps[key] = float(row['frame_time'])
+        return sync, stamps
     except (OSError, KeyError, ValueError, TypeError) as err:
         raise CalibrationInputError(f'sync file {path}: expected columns sync_index, camera '
                                     f'(or cam_id), frame_index ({err})') from None

@@ -52,6 +52,7 @@ class Rig:
     camera_rms: dict[str, float]        # per camera [px]
     shared_views: dict[str, int]        # per camera: views it shares with another camera
     views: int                          # views with the board in two cameras or more
+    latency: dict[str, float] | None = None   # per camera, s after the first's (rig_timing)
 
     def report(self) -> list[str]:
         lines = [f'rig: {len(self.cameras)} cameras, {self.views} shared views, RMS '
@@ -61,6 +62,9 @@ class Rig:
             lines.append(f'  {cam.name}: at ({x:.3f}, {y:.3f}, {z:.3f}) m, '
                          f'{self.shared_views[cam.name]} shared views, RMS '
                          f'{self.camera_rms[cam.name]:.3f} px')
+            if self.latency is not None and cam is not self.cameras[0]:
+                lines.append(f'    latency {1000 * self.latency[cam.name]:+.1f} ms after '
+                             f'{self.cameras[0].name}')
             K = cam.intrinsics.K
             lines.append(f'    fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy '
                          f'{K[1, 2]:.2f} px, D {np.array2string(cam.intrinsics.D, precision=5)}')
@@ -93,12 +97,18 @@ def board_pose(board: Board, det: Detection, intr: Intrinsics) -> np.ndarray:
 
 def calibrate_rig(board: Board, detections: dict[str, dict[str, Detection]],
                   intrinsics: dict[str, Intrinsics], ground_view: str,
-                  refine_intrinsics: bool = False) -> Rig:
+                  refine_intrinsics: bool = False,
+                  motion: dict[str, dict[str, np.ndarray]] | None = None) -> Rig:
     """R, t of every camera (keys of `detections`, the first one the reference) from the
     views (by key) each saw, the world fixed by `ground_view`, a view in which the board
     lies on the ground. Every view takes part in the refinement, a camera's own views
     too (they tie its lens); `refine_intrinsics` frees K and the model's distortion
-    coefficients there, starting from `intrinsics`."""
+    coefficients there, starting from `intrinsics`.
+
+    `motion` (camera -> view -> (N, 2) px/s, the velocity of each detected point) frees
+    a time shift per camera but the first: its points are taken where they were that
+    much later, `detections + motion * shift`, and `Rig.latency` holds the shifts
+    (uav_vs.vision.rig_timing iterates this to a camera's latency)."""
     names = list(detections)
     if len(names) < 2:
         raise CalibrationInputError('a rig needs two cameras or more')
@@ -127,8 +137,8 @@ def calibrate_rig(board: Board, detections: dict[str, dict[str, Detection]],
     for v in sorted({v for c in names for v in poses[c]}):
         c = next(c for c in names if v in poses[c])
         boards[v] = np.linalg.inv(in_ref[c]) @ poses[c][v]
-    in_ref, intrinsics, boards, residuals = _refine(board, detections, intrinsics, names,
-                                                    in_ref, boards, refine_intrinsics)
+    in_ref, intrinsics, boards, residuals, shifts = _refine(
+        board, detections, intrinsics, names, in_ref, boards, refine_intrinsics, motion)
     # world -> ref: world point -> board frame of the ground view -> ref frame
     world_to_board = np.eye(4)
     world_to_board[:3, :3] = BOARD_TO_WORLD.T
@@ -139,7 +149,8 @@ def calibrate_rig(board: Board, detections: dict[str, dict[str, Detection]],
         cameras.append(RigCamera(c, intrinsics[c], T[:3, :3], T[:3, 3]))
     rms = {c: float(np.sqrt(np.mean(r ** 2))) for c, r in residuals.items()}
     every = np.concatenate(list(residuals.values()))
-    return Rig(cameras, float(np.sqrt(np.mean(every ** 2))), rms, counts, len(views))
+    return Rig(cameras, float(np.sqrt(np.mean(every ** 2))), rms, counts, len(views),
+               None if motion is None else dict(zip(names, shifts)))
 
 
 def _chain(names: list[str], poses: dict[str, dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -179,10 +190,12 @@ def _mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
 FREE_DISTORTION = {'pinhole': 0, 'k1': 1, 'plumb_bob': 5, 'rational': 8}
 
 
-def _refine(board: Board, detections, intrinsics, names, in_ref, boards, refine_intrinsics):
+def _refine(board: Board, detections, intrinsics, names, in_ref, boards, refine_intrinsics,
+            motion=None):
     """Bundle adjustment: every camera pose (but the reference's), every board pose and,
     with `refine_intrinsics`, every camera's fx, fy, cx, cy and free distortion
-    coefficients moved together to minimise every reprojection error of every view.
+    coefficients, and with `motion` every camera's time shift (but the reference's),
+    moved together to minimise every reprojection error of every view.
 
     The Jacobian is analytic and sparse: cv2.projectPoints gives the derivatives of each
     view's pixels by its pose and the camera's intrinsics, cv2.composeRT those of the
@@ -195,14 +208,19 @@ def _refine(board: Board, detections, intrinsics, names, in_ref, boards, refine_
     n_intr = [4 + f if refine_intrinsics else 0 for f in free]
     pose_at = [-1] + [6 * k for k in range(n_cam - 1)]
     intr_at = np.concatenate([[0], np.cumsum(n_intr)])[:-1] + 6 * (n_cam - 1)
-    board_at = 6 * (n_cam - 1) + sum(n_intr)
+    shift_at = 6 * (n_cam - 1) + sum(n_intr) - 1       # + camera index (not the reference)
+    board_at = shift_at + 1 + (n_cam - 1 if motion is not None else 0)
     obs = [(ci, index[v], detections[c][v]) for ci, c in enumerate(names)
            for v in views if v in detections[c]]
+    rates = [motion[names[ci]][views[vi]].reshape(-1) if motion is not None and ci else None
+             for ci, vi, _ in obs]
     x0 = [_vector(in_ref[c]) for c in names[1:]]
     for ci, c in enumerate(names):
         if n_intr[ci]:
             K, D = intrinsics[c].K, intrinsics[c].D
             x0.append(np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], D[:free[ci]]]))
+    if motion is not None:
+        x0.append(np.zeros(n_cam - 1))
     x0 = np.concatenate(x0 + [_vector(boards[v]) for v in views])
     sizes = [2 * len(det.ids) for *_, det in obs]
     starts = np.concatenate([[0], np.cumsum(sizes)])
@@ -222,7 +240,7 @@ def _refine(board: Board, detections, intrinsics, names, in_ref, boards, refine_
         """Every residual and, with_jacobian, the sparse Jacobian's (rows, cols, values)."""
         lens = lenses(x)
         res, rows, cols, vals = [], [], [], []
-        for (ci, vi, det), row in zip(obs, starts):
+        for (ci, vi, det), rate, row in zip(obs, rates, starts):
             at = board_at + 6 * vi
             rb, tb = x[at:at + 3], x[at + 3:at + 6]
             if ci == 0:
@@ -231,7 +249,8 @@ def _refine(board: Board, detections, intrinsics, names, in_ref, boards, refine_
                 rc, tc = x[pose_at[ci]:pose_at[ci] + 3], x[pose_at[ci] + 3:pose_at[ci] + 6]
                 r, t, *d = cv2.composeRT(rb, tb, rc, tc)     # camera after board
             px, J = cv2.projectPoints(objects[det.ids], r, t, *lens[ci])
-            res.append(px.reshape(-1) - det.points.reshape(-1))
+            seen = det.points.reshape(-1)
+            res.append(px.reshape(-1) - (seen if rate is None else seen + rate * x[shift_at + ci]))
             if not with_jacobian:
                 continue
             J_pose = J[:, :6]                                  # by the composed r, t
@@ -246,6 +265,8 @@ def _refine(board: Board, detections, intrinsics, names, in_ref, boards, refine_
                            (pose_at[ci], J_pose @ by_camera)]
             if n_intr[ci]:
                 blocks.append((intr_at[ci], np.hstack([J[:, 6:10], J[:, 10:10 + free[ci]]])))
+            if rate is not None:
+                blocks.append((shift_at + ci, -rate[:, None]))
             n = J.shape[0]
             for col, block in blocks:
                 r_idx, c_idx = np.meshgrid(np.arange(row, row + n),
@@ -274,8 +295,10 @@ def _refine(board: Board, detections, intrinsics, names, in_ref, boards, refine_
     errors: dict[str, list] = {c: [] for c in names}
     for (ci, _, _), row, size in zip(obs, starts, sizes):
         errors[names[ci]].append(np.linalg.norm(fit.fun[row:row + size].reshape(-1, 2), axis=1))
+    shifts = [0.0] + ([float(s) for s in x[shift_at + 1:shift_at + n_cam]]
+                      if motion is not None else [0.0] * (n_cam - 1))
     return (dict(zip(names, cams)), refined, dict(zip(views, bds)),
-            {c: np.concatenate(e) for c, e in errors.items()})
+            {c: np.concatenate(e) for c, e in errors.items()}, shifts)
 
 
 def _vector(T: np.ndarray) -> np.ndarray:
