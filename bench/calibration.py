@@ -6,16 +6,21 @@ against the values ViSP publishes.
 calibration/caliscope_rig: `calibrate_camera` for each of caliscope's four webcams and
 `calibrate_rig` on the even synchronised sets; its figure is the RMS error of the
 neighbour distances (one 54 mm square) of the board's corners triangulated from the
-odd sets, left out, next to caliscope's own solution measured the same way. Detection
-is not timed (it is OpenCV's own detector).
+odd sets, left out, next to caliscope's own solution measured the same way, and next
+to OpenCV's own solver (`solver='opencv'`, cv2.calibrateMultiview) on the same views.
+Detection is not timed (it is OpenCV's own detector).
 calibration/caliscope_timed_rig: the same with each webcam's latency measured
 (`calibrate_timed_rig`, uav_vs.vision.rig_timing), the odd sets' boards taken at each
 set's instant; the target is under 0.6 mm.
 calibration/rig_4x100: `calibrate_rig` on four 1280x720 cameras at the corners of a
 10 m square seeing a 7 x 10 chessboard (0.1 m squares) in 100 views (0.2 px noise),
-intrinsics held fixed and refined; the target is under a minute on 2 cores.
+intrinsics held fixed and refined, next to cv2.calibrateMultiview on the same views;
+the target is under a minute on 2 cores. calibration/rig_partial_views: the same with
+each camera seeing a random 60 % of the board's points in every view (as a ChArUco
+board partly out of the image), both solvers.
 """
 import tomllib
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -55,6 +60,11 @@ def neighbour_rms_mm(board, cameras, detections, views) -> tuple[float, int]:
     return 1000 * float(np.sqrt(np.mean(errors ** 2))), len(errors)
 
 
+def cameras_of(rig) -> list[Camera]:
+    return [Camera(name=c.name, K=c.intrinsics.K, D=c.intrinsics.D, R=c.R, t=c.t)
+            for c in rig.cameras]
+
+
 def caliscope(data) -> None:
     root = data / 'calibration' / 'caliscope' / 'charuco_calibration'
     spec = tomllib.loads((root / 'charuco.toml').read_text())
@@ -82,17 +92,17 @@ def caliscope(data) -> None:
                      t=np.array(reference[str(k)]['translation'])) for k, n in enumerate(names)]
     ref_rms, _ = neighbour_rms_mm(board, theirs, detections, held_out)
 
-    def solve():
+    def solve(solver='scipy'):
         intrinsics = {n: calibrate_camera(board, views, (1280, 720)) for n, views in train.items()}
-        return calibrate_rig(board, train, intrinsics, ground)
-    rig = solve()
-    ms = timeit(solve, 3, warmup=0)
-    ours = [Camera(name=c.name, K=c.intrinsics.K, D=c.intrinsics.D, R=c.R, t=c.t)
-            for c in rig.cameras]
-    rms, pairs = neighbour_rms_mm(board, ours, detections, held_out)
-    report(SUITE, 'calibration/caliscope_rig', ms, None, None, views=rig.views,
-           rig_rms_px=round(rig.rms, 3), held_out_neighbour_rms_mm=round(rms, 3),
-           caliscope_solution_mm=round(ref_rms, 3), pairs=pairs)
+        return calibrate_rig(board, train, intrinsics, ground, solver=solver)
+    rig, theirs_rig = solve(), solve('opencv')
+    ms, ref_ms = timeit(solve, 3, warmup=0), timeit(lambda: solve('opencv'), 3, warmup=0)
+    rms, pairs = neighbour_rms_mm(board, cameras_of(rig), detections, held_out)
+    opencv_rms, _ = neighbour_rms_mm(board, cameras_of(theirs_rig), detections, held_out)
+    report(SUITE, 'calibration/caliscope_rig', ms, 'cv2.calibrateMultiview', ref_ms,
+           views=rig.views, rig_rms_px=round(rig.rms, 3),
+           held_out_neighbour_rms_mm=round(rms, 3), caliscope_solution_mm=round(ref_rms, 3),
+           opencv_solver_mm=round(opencv_rms, 3), pairs=pairs)
 
     instants = set_instants(sync, stamps, 'cam_0')
     gap = frame_gap(stamps)
@@ -104,11 +114,9 @@ def caliscope(data) -> None:
         return calibrate_timed_rig(board, tracks, train_at, intrinsics, ground, gap)
     rig = solve_timed()
     ms = timeit(solve_timed, 3, warmup=0)
-    ours = [Camera(name=c.name, K=c.intrinsics.K, D=c.intrinsics.D, R=c.R, t=c.t)
-            for c in rig.cameras]
     seen = timed_views(tracks, test_at, rig.latency, gap)
     held_out = sorted(v for v in test_at if sum(v in seen[n] for n in names) >= 2)
-    rms, pairs = neighbour_rms_mm(board, ours, [seen[n] for n in names], held_out)
+    rms, pairs = neighbour_rms_mm(board, cameras_of(rig), [seen[n] for n in names], held_out)
     report(SUITE, 'calibration/caliscope_timed_rig', ms, None, None, views=rig.views,
            rig_rms_px=round(rig.rms, 3), held_out_neighbour_rms_mm=round(rms, 3), pairs=pairs,
            latency_ms={n: round(1000 * s, 1) for n, s in rig.latency.items()})
@@ -128,14 +136,29 @@ def rig_4x100() -> None:
     detections = seen_points(cameras, board, poses, 0.2, rng)
     intrinsics = {c.name: Intrinsics(K, D, 'plumb_bob', (1280, 720), np.nan, {}, {}, np.nan)
                   for c in cameras}
-    for refine in (False, True):
-        rig = calibrate_rig(board, detections, intrinsics, 'ground', refine)
-        ms = timeit(lambda: calibrate_rig(board, detections, intrinsics, 'ground', refine), 3,
+    partial = {c: {v: replace(d, ids=d.ids[keep], points=d.points[keep])
+                   for v, d in views.items()
+                   for keep in [np.sort(rng.choice(len(d.ids), int(0.6 * len(d.ids)),
+                                                   replace=False)) if v != 'ground' else
+                                np.arange(len(d.ids))]}
+               for c, views in detections.items()}
+
+    def worst_t_mm(rig) -> float:
+        return 1000 * max(np.linalg.norm(o.t - t.t) for t, o in zip(cameras, rig.cameras))
+
+    cases = [('rig_4x100', detections, False), ('rig_4x100_refined_intrinsics', detections, True),
+             ('rig_partial_views', partial, False)]
+    for case, seen, refine in cases:
+        rig = calibrate_rig(board, seen, intrinsics, 'ground', refine)
+        theirs = calibrate_rig(board, seen, intrinsics, 'ground', refine, solver='opencv')
+        ms = timeit(lambda: calibrate_rig(board, seen, intrinsics, 'ground', refine), 3,
                     warmup=0)
-        errors = [np.linalg.norm(ours.t - true.t) for true, ours in zip(cameras, rig.cameras)]
-        report(SUITE, f'calibration/rig_4x100{"_refined_intrinsics" if refine else ""}', ms,
-               None, None, views=rig.views, rig_rms_px=round(rig.rms, 3),
-               worst_t_error_mm=round(1000 * max(errors), 2))
+        ref_ms = timeit(lambda: calibrate_rig(board, seen, intrinsics, 'ground', refine,
+                                              solver='opencv'), 3, warmup=0)
+        report(SUITE, f'calibration/{case}', ms, 'cv2.calibrateMultiview', ref_ms,
+               views=rig.views, rig_rms_px=round(rig.rms, 3),
+               worst_t_error_mm=round(worst_t_mm(rig), 2),
+               opencv_worst_t_error_mm=round(worst_t_mm(theirs), 2))
 
 
 def main() -> None:

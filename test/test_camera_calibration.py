@@ -264,9 +264,13 @@ def synthetic_rig(noise_px: float, seed: int = 0):
     return cameras, board, detections, intrinsics
 
 
-def test_a_rig_is_recovered_in_the_world_of_the_board_on_the_ground():
+@pytest.mark.parametrize('solver', [
+    'scipy', pytest.param('opencv', marks=pytest.mark.skipif(
+        not hasattr(cv2, 'calibrateMultiviewExtended'), reason='OpenCV 5 has calibrateMultiview'))])
+def test_a_rig_is_recovered_in_the_world_of_the_board_on_the_ground(solver):
+    """By our bundle adjustment and by OpenCV's own multiview calibration alike."""
     cameras, board, detections, intrinsics = synthetic_rig(0.1)
-    rig = calibrate_rig(board, detections, intrinsics, 'ground')
+    rig = calibrate_rig(board, detections, intrinsics, 'ground', solver=solver)
     assert 0.12 < rig.rms < 0.16                    # the noise: 0.1 px per axis, 0.14 px
     for true, ours in zip(cameras, rig.cameras):
         turn = math.degrees(np.linalg.norm(cv2.Rodrigues(ours.R @ true.R.T)[0]))
@@ -328,6 +332,17 @@ def test_the_rig_refines_the_lenses_with_every_view():
 def _landmarks() -> dict:
     params = read_params_file(default_config_path())
     return {k: v for k, v in params.items() if not k.startswith('cameras.')}
+
+
+def test_a_solver_is_one_of_two_and_opencv_measures_no_latency():
+    cameras, board, detections, intrinsics = synthetic_rig(0.1)
+    with pytest.raises(CalibrationInputError, match="solver: expected one of scipy, opencv, "
+                                                    "got 'ceres'"):
+        calibrate_rig(board, detections, intrinsics, 'ground', solver='ceres')
+    motion = {c: {v: np.zeros_like(d.points) for v, d in views.items()}
+              for c, views in detections.items()}
+    with pytest.raises(CalibrationInputError, match="solver 'opencv' (cannot|needs)"):
+        calibrate_rig(board, detections, intrinsics, 'ground', motion=motion, solver='opencv')
 
 
 def test_a_camera_sharing_no_view_is_named():

@@ -23,7 +23,8 @@ import yaml
 from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 
-from uav_vs.vision.calibration import Board, CalibrationInputError, Detection, Intrinsics
+from uav_vs.vision.calibration import (MODELS, Board, CalibrationInputError, Detection,
+                                       Intrinsics)
 from uav_vs.vision.camera import Camera
 from uav_vs.vision.triangulation import triangulate
 
@@ -98,7 +99,8 @@ def board_pose(board: Board, det: Detection, intr: Intrinsics) -> np.ndarray:
 def calibrate_rig(board: Board, detections: dict[str, dict[str, Detection]],
                   intrinsics: dict[str, Intrinsics], ground_view: str,
                   refine_intrinsics: bool = False,
-                  motion: dict[str, dict[str, np.ndarray]] | None = None) -> Rig:
+                  motion: dict[str, dict[str, np.ndarray]] | None = None,
+                  solver: str = 'scipy') -> Rig:
     """R, t of every camera (keys of `detections`, the first one the reference) from the
     views (by key) each saw, the world fixed by `ground_view`, a view in which the board
     lies on the ground. Every view takes part in the refinement, a camera's own views
@@ -108,7 +110,19 @@ def calibrate_rig(board: Board, detections: dict[str, dict[str, Detection]],
     `motion` (camera -> view -> (N, 2) px/s, the velocity of each detected point) frees
     a time shift per camera but the first: its points are taken where they were that
     much later, `detections + motion * shift`, and `Rig.latency` holds the shifts
-    (uav_vs.vision.rig_timing iterates this to a camera's latency)."""
+    (uav_vs.vision.rig_timing iterates this to a camera's latency).
+
+    `solver`: 'scipy' (our bundle adjustment, `_refine`) or 'opencv' (OpenCV 5's
+    cv2.calibrateMultiview, its own initialisation and refinement of the same
+    reprojection errors; no `motion`)."""
+    if solver not in SOLVERS:
+        raise CalibrationInputError(f'solver: expected one of {", ".join(SOLVERS)}, got '
+                                    f'{solver!r}')
+    if solver == 'opencv' and not hasattr(cv2, 'calibrateMultiviewExtended'):
+        raise CalibrationInputError(f"solver 'opencv' needs OpenCV 5's calibrateMultiview "
+                                    f'(this is OpenCV {cv2.__version__})')
+    if solver == 'opencv' and motion is not None:
+        raise CalibrationInputError("solver 'opencv' cannot measure latencies: use 'scipy'")
     names = list(detections)
     if len(names) < 2:
         raise CalibrationInputError('a rig needs two cameras or more')
@@ -137,8 +151,13 @@ def calibrate_rig(board: Board, detections: dict[str, dict[str, Detection]],
     for v in sorted({v for c in names for v in poses[c]}):
         c = next(c for c in names if v in poses[c])
         boards[v] = np.linalg.inv(in_ref[c]) @ poses[c][v]
-    in_ref, intrinsics, boards, residuals, shifts = _refine(
-        board, detections, intrinsics, names, in_ref, boards, refine_intrinsics, motion)
+    if solver == 'opencv':
+        in_ref, intrinsics, boards, residuals = _multiview(board, detections, intrinsics, names,
+                                                           list(boards), refine_intrinsics)
+        shifts = [0.0] * len(names)
+    else:
+        in_ref, intrinsics, boards, residuals, shifts = _refine(
+            board, detections, intrinsics, names, in_ref, boards, refine_intrinsics, motion)
     # world -> ref: world point -> board frame of the ground view -> ref frame
     world_to_board = np.eye(4)
     world_to_board[:3, :3] = BOARD_TO_WORLD.T
@@ -188,6 +207,53 @@ def _mean_transform(transforms: list[np.ndarray]) -> np.ndarray:
 
 
 FREE_DISTORTION = {'pinhole': 0, 'k1': 1, 'plumb_bob': 5, 'rational': 8}
+SOLVERS = ('scipy', 'opencv')
+
+
+def _multiview(board: Board, detections, intrinsics, names, views, refine_intrinsics):
+    """The rig by cv2.calibrateMultiviewExtended (OpenCV 5): ref -> camera transforms,
+    intrinsics, board -> ref transform of each view, each camera's residuals (px)."""
+    objects = board.object_points().astype(np.float32)
+    mask = np.zeros((len(names), len(views)), np.uint8)
+    pixels = []
+    for ci, c in enumerate(names):
+        row = []
+        for vi, v in enumerate(views):
+            seen = np.full((len(objects), 2), -1.0, np.float32)    # -1: not seen
+            if v in detections[c]:
+                seen[detections[c][v].ids] = detections[c][v].points
+                mask[ci, vi] = 1
+            row.append(seen)
+        pixels.append(row)
+    fixed = [cv2.CALIB_FIX_INTRINSIC if not refine_intrinsics else
+             MODELS[intrinsics[c].model][0] for c in names]
+    _, Ks, Ds, Rs, Ts, _, rvecs, tvecs, _ = cv2.calibrateMultiviewExtended(
+        [objects] * len(views), pixels, [intrinsics[c].size for c in names], mask,
+        np.full(len(names), cv2.CALIB_MODEL_PINHOLE, np.uint8),
+        [intrinsics[c].K.astype(np.float64) for c in names],
+        [intrinsics[c].D.reshape(1, -1).astype(np.float64) for c in names], None, None,
+        flagsForIntrinsics=np.array(fixed, np.int32), flags=cv2.CALIB_USE_INTRINSIC_GUESS)
+    in_ref = {}
+    for c, R, t in zip(names, Rs, Ts):
+        T = np.eye(4)
+        T[:3, :3] = R if np.shape(R) == (3, 3) else cv2.Rodrigues(R)[0]
+        T[:3, 3] = np.ravel(t)
+        in_ref[c] = T
+    refined = {c: replace(intrinsics[c], K=np.asarray(K), D=np.ravel(D))
+               for c, K, D in zip(names, Ks, Ds)}
+    boards = {v: _matrix(np.ravel(r), np.ravel(t)) for v, r, t in zip(views, rvecs, tvecs)
+              if r is not None and np.size(r) == 3}
+    residuals = {}
+    for c in names:
+        errors = []
+        for v, det in detections[c].items():
+            T = in_ref[c] @ boards[v]
+            px, _ = cv2.projectPoints(objects[det.ids].astype(np.float64),
+                                      cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], refined[c].K,
+                                      refined[c].D)
+            errors.append(np.linalg.norm(px.reshape(-1, 2) - det.points, axis=1))
+        residuals[c] = np.concatenate(errors)
+    return in_ref, refined, boards, residuals
 
 
 def _refine(board: Board, detections, intrinsics, names, in_ref, boards, refine_intrinsics,
