@@ -93,6 +93,21 @@ def test_a_pose_in_another_frame_or_not_finite_is_refused():
                           'world')
 
 
+def test_a_pose_covariance_must_be_one():
+    q, header = np.array([0.0, 0.0, 0.6, 0.8]), Header(frame_id='world')
+    cov = np.diag([0.01, 0.01, 0.02, 1e6, 1e6, 0.003])
+    *_, back = cv.msg_to_pose_cov_in(cv.pose_cov_to_msg([1.0, 2.0, 3.0], q, cov, header), 'world')
+    assert np.array_equal(back, cov)
+    bad = cov.copy()
+    bad[0, 1] = bad[1, 0] = 0.02                   # x, y correlated beyond +-1: no covariance
+    asymmetric = cov.copy()
+    asymmetric[0, 1] = 0.001
+    for wrong, match in ((bad, 'positive semi-definite'), (asymmetric, 'not symmetric'),
+                         (np.diag([0.01, 0.0, 0.02, 1.0, 1.0, 1.0]), 'positive diagonal')):
+        with pytest.raises(cv.MessageError, match=match):
+            cv.msg_to_pose_cov_in(cv.pose_cov_to_msg([1.0, 2.0, 3.0], q, wrong, header), 'world')
+
+
 @pytest.mark.parametrize('encoding, channels, frame_id', [('bgr8', 3, 'cam1_optical'),
                                                           ('mono8', 1, ''), ('rgba8', 4, 'abc')])
 def test_serialized_image_is_read_in_place_as_rclpy_reads_it(encoding, channels, frame_id):

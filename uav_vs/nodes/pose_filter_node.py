@@ -6,8 +6,8 @@ Subscribes each of `pose_filter.pose_topics` (geometry_msgs/PoseStamped in
 deviations (`pose_filter.position_sigmas`, `.yaw_sigmas`, one per topic); each of
 `pose_filter.covariance_topics` (geometry_msgs/PoseWithCovarianceStamped, e.g.
 trinocular_pose_node's ground/pose_cov) with the covariance it carries (its x, y, z and
-rotation-about-z block; a covariance that is not finite with a positive diagonal makes the
-message malformed); and, unless it
+rotation-about-z block; a covariance that is not finite, symmetric and positive
+semi-definite with a positive diagonal makes the message malformed); and, unless it
 is empty, `pose_filter.odometry_topic` (nav_msgs/Odometry, the relay's autopilot/odom:
 its velocity in base_link and yaw rate, and its position and yaw, each with its
 `pose_filter.odometry_*_sigma`). Every measurement is applied at its header stamp.
@@ -39,9 +39,9 @@ from uav_vs.ros.convert import (MessageError, check_frame, msg_to_odometry, msg_
                                 yaw_of, yaw_quaternion)
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, ThrottledWarnings, run
 from uav_vs.ros.params import ParameterError, Param, T, declare
+from uav_vs.vision.pose_covariance import UNKNOWN
 
 _F = FilterParams()
-UNKNOWN = 1e6       # the variance of what the filter does not estimate (roll, pitch)
 PARAMS = [
     Param('pose_filter.pose_topics', T.STRING_ARRAY, ['ground/pose', 'onboard/pose'],
           'vehicle poses (PoseStamped) to fuse'),
@@ -94,8 +94,8 @@ class PoseFilterNode(Node):
                                      f'({len(topics)}), got {len(p[key])}')
         covariance_topics = p['pose_filter.covariance_topics']
         if not topics and not covariance_topics and not p['pose_filter.odometry_topic']:
-            raise ParameterError('pose_filter.pose_topics: expected a topic, or an '
-                                 'odometry_topic, got none')
+            raise ParameterError('pose_filter.pose_topics: expected a topic (or one in '
+                                 'covariance_topics, or an odometry_topic), got none')
         self.world, self.body = p['pose_filter.world_frame'], p['pose_filter.body_frame']
         self.timeout = p['pose_filter.timeout']
         self.filter = PoseFilter(FilterParams(

@@ -257,11 +257,18 @@ def pose_cov_to_msg(position: np.ndarray, quaternion_xyzw: np.ndarray, covarianc
 def msg_to_pose_cov_in(msg: PoseWithCovarianceStamped, frame: str
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """msg_to_pose_in of a pose with covariance, and its 6x6 covariance: MessageError
-    unless that is finite with a positive diagonal."""
+    unless that is a covariance: finite with a positive diagonal, and its correlation
+    matrix symmetric with no negative eigenvalue (to 1e-9)."""
     position, q = msg_to_pose_in(PoseStamped(header=msg.header, pose=msg.pose.pose), frame)
     cov = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)
     if not (np.isfinite(cov).all() and np.all(np.diag(cov) > 0)):
         raise MessageError('covariance not finite with a positive diagonal')
+    sd = np.sqrt(np.diag(cov))
+    corr = cov / np.outer(sd, sd)
+    if np.abs(corr - corr.T).max() > 1e-9:
+        raise MessageError('covariance not symmetric')
+    if np.linalg.eigvalsh(corr).min() < -1e-9:
+        raise MessageError('covariance not positive semi-definite')
     return position, q, cov
 
 
