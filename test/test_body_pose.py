@@ -36,7 +36,7 @@ def test_noise_free_landmarks_give_the_exact_pose(layout, yaw, method):
     t = np.array([1.3, -0.7, 1.45])
     R = rot(yaw)
     pose = solve_pose(layout, layout @ R.T + t, method)
-    assert pose.ok and pose.reason == '' and pose.n_used == 4
+    assert pose.ok and pose.reason == '' and pose.n_used == 4 and pose.method == method
     assert abs(wrap(pose.yaw - yaw)) < 1e-12
     np.testing.assert_allclose(pose.position, t, atol=1e-12)
     np.testing.assert_allclose(pose.R, R, atol=1e-12)
@@ -90,6 +90,7 @@ def test_rigid_with_two_landmarks_falls_back_to_eq26():
     world[2:] = np.nan
     pose = solve_pose(LAYOUT, world, 'rigid')
     assert pose.ok and 'eq 26' in pose.reason and abs(pose.yaw - 0.7) < 1e-12
+    assert pose.method == 'yaw'
 
 
 def test_quaternion_matches_rotation():

@@ -7,8 +7,8 @@ triangulates (eq 24-25) and solves yaw + position (eq 26).
 Publishes `ground/pose` (PoseStamped, `world` ENU), the same pose with its covariance on
 `ground/pose_cov` (PoseWithCovarianceStamped: the landmarks' pixel noise pooled from the
 triangulation residuals, never below `trinocular.pixel_sigma_floor`, propagated through
-eq 24-26, plus `trinocular.bias_sigma` on the position; uav_vs.vision.pose_covariance),
-`ground/landmarks`
+eq 24-26, plus `trinocular.bias_sigma` on the position; uav_vs.vision.pose_covariance;
+solved only while something subscribes to it), `ground/landmarks`
 (PolygonStamped, 3D landmark positions in `world`, NaN where not triangulated) and
 /diagnostics. A frame set that gives no pose publishes none on ground/pose: why is the
 diagnostics' message and, every 5 s at most, a warning in the log.
@@ -197,13 +197,12 @@ class TrinocularPoseNode(QuietPublisherNode):
         sigma = self.pixel_noise.update(tri)
         if pose.ok:
             self.pose_pub.publish(pose_to_msg(pose.position, pose.quaternion, header))
-            cov = pose_covariance(self.cfg.layout, pose,
-                                  landmark_covariances(self.cfg.cameras, tri, sigma),
-                                  # rigid falls back to eq 26, with a note, below 3 landmarks
-                                  yaw_only=self.pose_method == 'yaw' or bool(pose.reason),
-                                  bias_sigma=self.bias_sigma)
-            self.pose_cov_pub.publish(pose_cov_to_msg(pose.position, pose.quaternion, cov,
-                                                      header))
+            if self.pose_cov_pub.get_subscription_count():
+                cov = pose_covariance(self.cfg.layout, pose,
+                                      landmark_covariances(self.cfg.cameras, tri, sigma),
+                                      yaw_only=pose.method == 'yaw', bias_sigma=self.bias_sigma)
+                self.pose_cov_pub.publish(pose_cov_to_msg(pose.position, pose.quaternion, cov,
+                                                          header))
         else:
             self.get_logger().warn(f'no pose: {pose.reason}', throttle_duration_sec=5.0)
         self.counts['poses' if pose.ok else 'no_pose'] += 1

@@ -36,6 +36,7 @@ class BodyPose:
     n_used: int               # landmarks with a finite world position
     ok: bool
     reason: str               # why not ok (or a note on the method used); '' otherwise
+    method: str = ''          # the fit used: 'yaw' (eq 26) or 'rigid'; '' when not ok
 
 
 def solve_pose(layout: np.ndarray, world_points: np.ndarray, method: str = 'yaw') -> BodyPose:
@@ -73,7 +74,8 @@ def solve_pose(layout: np.ndarray, world_points: np.ndarray, method: str = 'yaw'
     residuals = np.full(layout.shape[0], np.nan)
     residuals[used] = np.linalg.norm(lay @ R.T + position - w, axis=1)
     return BodyPose(position, float(np.arctan2(R[1, 0], R[0, 0])), R, quaternion_xyzw(R),
-                    float(np.sqrt(np.mean(residuals[used] ** 2))), residuals, n, True, note)
+                    float(np.sqrt(np.mean(residuals[used] ** 2))), residuals, n, True, note,
+                    method)
 
 
 def _yaw_rotation(lay: np.ndarray, w: np.ndarray) -> np.ndarray | None:
