@@ -4,7 +4,6 @@ Ground truth: a known camera projecting a known board (analytic geometry), a che
 rendered through a known camera, and real data: ViSP's circle grid with the intrinsics
 its authors published, and caliscope's four webcams filming a ChArUco board, with the
 reprojection errors of that project's own calibration."""
-import csv
 import math
 import re
 import subprocess
@@ -373,12 +372,10 @@ def test_a_board_that_looks_the_same_turned_half_round_is_refused_for_a_rig(boar
 
 
 def by_sync_index(root, found: dict[str, Detection], cam: int) -> dict[str, Detection]:
-    """Camera `cam`'s detections by sync index (timestamps.csv)."""
-    sync = {}
-    for row in csv.DictReader(open(root / 'extrinsic' / 'timestamps.csv')):
-        if int(row['cam_id']) == cam:
-            sync[int(row['frame_index'])] = int(row['sync_index'])
-    return {str(sync[int(key.rpartition('#')[2])]): det for key, det in found.items()}
+    """Camera `cam`'s detections by sync index (timestamps.csv, as `rig --sync` reads it)."""
+    sync, _ = read_sync(root / 'extrinsic' / 'timestamps.csv')
+    return {str(sync[f'cam_{cam}', int(key.rpartition('#')[2])]): det
+            for key, det in found.items()}
 
 
 def test_caliscope_rig_measures_its_board_better_than_its_own_solution(caliscope,

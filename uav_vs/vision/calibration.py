@@ -39,6 +39,7 @@ ROS_DISTORTION_MODEL = {'pinhole': 'plumb_bob', 'k1': 'plumb_bob', 'plumb_bob': 
                         'rational': 'rational_polynomial'}
 IMAGE_SUFFIXES = frozenset({'.png', '.jpg', '.jpeg', '.bmp', '.tif', '.tiff', '.pgm', '.ppm'})
 COVERAGE_GRID = 10      # the image cut into 10 x 10 cells for the coverage figure
+MIN_POINTS = 6          # a view with fewer of the board's points is no view
 
 
 class CalibrationInputError(ValueError):
@@ -150,7 +151,7 @@ class Detection:
     sharpness: float = math.nan
 
 
-def detect(board: Board, image: np.ndarray, min_points: int = 6) -> Detection | None:
+def detect(board: Board, image: np.ndarray, min_points: int = MIN_POINTS) -> Detection | None:
     """The board in one image (grey or BGR), or None if not found (or fewer than
     `min_points` of its points)."""
     gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)

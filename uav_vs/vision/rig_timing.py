@@ -18,10 +18,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from uav_vs.vision.calibration import Board, CalibrationInputError, Detection, Intrinsics
+from uav_vs.vision.calibration import (MIN_POINTS, Board, CalibrationInputError, Detection,
+                                       Intrinsics)
 from uav_vs.vision.rig_calibration import Rig, calibrate_rig
-
-MIN_POINTS = 6          # as calibration.detect: fewer points make no view
 
 
 def resample(track: dict[float, Detection], at: dict[str, float], max_gap: float
