@@ -414,6 +414,49 @@ def test_vision_pose_is_forwarded_in_ned(ros_node, processes):
         autopilot.close()
 
 
+def test_fused_odometry_is_forwarded_with_its_covariance(ros_node, processes):
+    """pose_filter_node's fused/odom as external navigation: its position covariance in
+    NED (x, y swapped, their correlation kept), roll and pitch (unknown to the filter:
+    1e6) sent with the yaw's variance and uncorrelated; a covariance that is not one
+    (negative eigenvalue) counted as malformed and not sent."""
+    autopilot = BareAutopilot()
+    try:
+        start_relay(processes, f'udpout:127.0.0.1:{autopilot.port}',
+                    'vision_pose_topic:=fused/odom', 'vision_pose_type:=odometry')
+        probe = Probe(ros_node)
+        pub = ros_node.create_publisher(Odometry, '/fused/odom', 10)
+        probe.wait_diag(link='connected')
+        assert wait_for(lambda: pub.get_subscription_count() > 0, 20)
+        cov = np.diag([0.04, 0.01, 0.09, 1e6, 1e6, 0.0025])
+        cov[0, 1] = cov[1, 0] = 0.012           # east-north correlation 0.6
+        cov[2, 5] = cov[5, 2] = 0.003           # up-yaw correlation 0.2
+        s = math.sqrt(0.5)
+        header = Header(stamp=ns_to_stamp(1_700_000_000_500_000_000), frame_id='world')
+        good = odometry_to_msg([1.0, 2.0, 3.0], [0.0, 0.0, s, s], [0.3, 0.0, 0.0],
+                               [0.0, 0.0, 0.1], header, 'base_link', pose_covariance=cov)
+        not_psd = cov.copy()
+        not_psd[0, 1] = not_psd[1, 0] = 0.03    # correlation 1.5
+        bad = odometry_to_msg([1.0, 2.0, 3.0], [0.0, 0.0, s, s], [0.3, 0.0, 0.0],
+                              [0.0, 0.0, 0.1], header, 'base_link', pose_covariance=not_psd)
+
+        forwarded = forward_vision(pub, autopilot, good, bad)
+        diag = probe.wait_diag(vision=str(len(forwarded)))
+        assert int(diag['malformed']) >= 1
+        upper = np.triu_indices(6)
+        for v in forwarded:
+            assert (v.x, v.y, v.z, v.usec) == (2.0, 1.0, -3.0, 1_700_000_000_500_000)
+            sent = np.zeros((6, 6))
+            sent[upper] = v.covariance
+            yaw = 0.0025
+            expected = np.diag([0.01, 0.04, 0.09, yaw, yaw, yaw])
+            expected[0, 1] = 0.012                # north-east
+            expected[2, 5] = 0.003                # down-yaw (NED): both signs flip
+            assert np.allclose(sent, expected, rtol=1e-6, atol=1e-9), sent
+        assert 'positive semi-definite' in processes.log('relay')
+    finally:
+        autopilot.close()
+
+
 def _gcs_hears(transport: str, port: int, seconds: float) -> tuple[list, list]:
     """A GCS without the key sends DO_SET_MODE STABILIZE: (its ACKs, HEARTBEAT signed flags).
 
@@ -497,6 +540,8 @@ def test_signing_rejects_unsigned_traffic_both_ways_and_installs_the_key(ros_nod
                             "tcpin: followed by HOST:PORT, or a serial device"),
     ('ekf_origin:=[-35.36, 149.17]', 'ekf_origin: expected [latitude, longitude, altitude] or []'),
     ('ekf_origin:=[-35.36, 149.17, 584.0]', 'ekf_origin: set without vision_pose_topic'),
+    ('vision_pose_type:=twist', "vision_pose_type: expected a string (one of pose, pose_cov, "
+                                "odometry), got 'twist'"),
 ])
 def test_bad_parameter_stops_the_node_with_one_fatal_line(tmp_path, override, expected):
     doc = yaml.safe_load(CONFIG.read_text())

@@ -5,7 +5,8 @@ in a loopback-only network namespace, the whole graph joins it, and the mission 
 with ArduPilot's physics, EKF3 and GUIDED controller: take off, hold on the ground
 station's pose, land on the pad on the onboard pose. Truth is SITL's own physics state
 (SIM_STATE), which no node of the loop reads. `--scenario gps_denied` flies it without
-GPS, its EKF3 on the ground station's pose alone. `--scenario follow` follows a picture driving round a circle on
+GPS, its EKF3 on the ground station's pose alone; `--scenario gps_denied_fused` on the pose
+filter's estimate. `--scenario follow` follows a picture driving round a circle on
 the ground, found in the onboard images.
 
 The flights are in this module so that they run one after the other (`--dist loadscope`).
@@ -61,6 +62,11 @@ def follow_flight(tmp_path_factory) -> tuple[FlightLog, str]:
 @pytest.fixture(scope='module')
 def gps_denied_flight(tmp_path_factory) -> tuple[FlightLog, str]:
     return fly_sitl('gps_denied', tmp_path_factory.mktemp('sitl_gps_denied'))
+
+
+@pytest.fixture(scope='module')
+def fused_nav_flight(tmp_path_factory) -> tuple[FlightLog, str]:
+    return fly_sitl('gps_denied_fused', tmp_path_factory.mktemp('sitl_fused_nav'))
 
 
 def test_the_mission_flies_arducopter_sitl_by_vision(flight):
@@ -124,6 +130,29 @@ def test_without_gps_arducopter_flies_on_the_ground_stations_pose(gps_denied_fli
     fused = report.sources['fused']
     assert fused.samples > 50 and fused.position_rmse_m <= 0.075, fused
     assert 'autopilot EKF over the flight' in stdout
+    assert not any(log.exit_codes.values()), (log.exit_codes, log.failed_logs)
+
+
+def test_without_gps_arducopter_flies_on_the_fused_estimate(fused_nav_flight):
+    """GPS off, EKF3 on the relay's VISION_POSITION_ESTIMATE from pose_filter_node's
+    fused/odom (with its covariance, config/ardupilot_fused_nav.parm), the filter on the
+    ground and onboard poses alone: the same flight and figures as on the ground pose, the
+    EKF taking every fix (innovation ratios under 1)."""
+    log, stdout = fused_nav_flight
+    report = FlightReport.from_log(log)
+    print(report.summary())
+    assert log.failure == '', log.failure
+    hold = report.setpoints[0]
+    assert hold.reached and hold.error_rms_m <= 0.15, hold
+    assert log.landed_ns is not None
+    ekf = report.ekf
+    assert ekf is not None and ekf.reports >= 10, ekf
+    assert ekf.navigating and ekf.gps_fix_max < 2, ekf
+    assert ekf.pos_horiz_ratio_max < 1.0 and ekf.pos_vert_ratio_max < 1.0, ekf
+    odom, fused = report.sources['odom'], report.sources['fused']
+    assert odom.samples > 50 and odom.position_rmse_m <= 0.15, odom
+    assert odom.yaw_rmse_deg <= 3.0, odom
+    assert fused.samples > 50 and fused.position_rmse_m <= 0.075, fused
     assert not any(log.exit_codes.values()), (log.exit_codes, log.failed_logs)
 
 

@@ -24,7 +24,9 @@ by default the same host's next SERIAL port, PORT + 2).
 `SCENARIO=gps_denied` (`--scenario gps_denied`, ArduPilot SITL only) flies without GPS:
 SITL gets config/ardupilot_gps_denied.parm (an attached SITL must run with it), EKF3
 navigates on the ground station's pose, which the relay forwards with the EKF origin;
-the summary adds what the EKF reported over the flight.
+the summary adds what the EKF reported over the flight. `SCENARIO=gps_denied_fused` feeds
+it the pose filter's estimate (fused/odom, with its covariance) instead, SITL getting
+config/ardupilot_fused_nav.parm after the first.
 `SCENARIO=follow` (`--scenario follow`, any vehicle) follows a target driving on the
 ground after the hold, with target_tracker_node and target_follower_node; the summary
 adds how close the vehicle stayed to it.
@@ -72,7 +74,7 @@ from uav_vs.flight.plots import plot_flight
 from uav_vs.flight.recorder import MissionError
 from uav_vs.flight.replay import commands_from_bag, replay_flight, stamps_from_bag
 from uav_vs.flight.report import FlightLog, FlightReport, command_latencies, score_link_cut
-from uav_vs.flight.scenario import (GPS_DENIED_PARAMS, SCENARIOS, Configs, SitlLink, fly,
+from uav_vs.flight.scenario import (SCENARIOS, Configs, SitlLink, fly, sitl_params,
                                     vehicle_bag)
 from uav_vs.sim import netns, radio_link
 from uav_vs.sim.radio_link import LinkConfig, TwoHosts
@@ -232,9 +234,11 @@ def sitl_closed_loop(scenario_name: str, out: Path, sensors: str, attach: str | 
                      truth: str | None) -> int:
     """The closed loop on ArduCopter SITL: attached to `attach`, or started here."""
     gps_denied = SCENARIOS[scenario_name].gps_denied
+    extra = sitl_params(SCENARIOS[scenario_name])
     if attach:
-        if gps_denied:
-            print(f'the SITL at {attach} must run with {GPS_DENIED_PARAMS}', flush=True)
+        if extra:
+            print(f'the SITL at {attach} must run with {", ".join(map(str, extra))}',
+                  flush=True)
         return closed_loop(scenario_name, out, 'ardupilot', sensors,
                            SitlLink(attach, truth or next_serial_port(attach)))
     binary = find_binary()
@@ -248,7 +252,6 @@ def sitl_closed_loop(scenario_name: str, out: Path, sensors: str, attach: str | 
         print(f'cannot start SITL: {err}', file=sys.stderr)
         return 2
     try:
-        extra = (GPS_DENIED_PARAMS,) if gps_denied else ()
         with ArduCopterSitl(binary, out / 'sitl', extra_params=extra) as sitl:
             relay, serial1, _ = sitl.serial_ports
             print(f'ArduCopter SITL {binary} started in network namespace {namespace} '

@@ -129,6 +129,21 @@ class Limits:
             raise ValueError(f'fence_approach must be a finite number > 0, got {self.fence_approach}')
 
 
+def yaw_only_attitude(covariance: np.ndarray) -> np.ndarray:
+    """A 6x6 NED pose covariance as the autopilots can use it in VISION_POSITION_ESTIMATE:
+    both take roll and pitch from their own IMU and fuse only the yaw of an external
+    attitude (ArduPilot's EK3_SRC1_YAW, PX4's EKF2_EV_CTRL yaw bit), but ArduPilot folds
+    the three angles' variances into the one noise of that yaw (the root of their sum).
+    So roll and pitch are sent with the yaw's variance and no correlation: a pose whose
+    roll and pitch are unknown (huge variances, as pose_filter_node's fused/odom, which
+    does not estimate them) does not drown its yaw."""
+    out = np.array(covariance, dtype=float)
+    out[3:5, :] = 0.0
+    out[:, 3:5] = 0.0
+    out[3, 3] = out[4, 4] = out[5, 5]
+    return out
+
+
 @dataclass(frozen=True)
 class SessionConfig:
     connection: str                         # pymavlink connection string
@@ -524,13 +539,15 @@ class Session:
         to the ArduPilot/PX4 EKFs.
 
         `stamp` is the pose time (UNIX seconds); `covariance` a 6x6 ROS pose covariance
-        (ENU position, FLU rotation), or None for diag(pos_std^2, angle_std^2).
+        (ENU position, FLU rotation), or None for diag(pos_std^2, angle_std^2); see
+        yaw_only_attitude for what is sent of its rotation block.
         """
         p = frames.enu_to_ned(position)
         roll, pitch, yaw = frames.attitude_enu_to_ned(orientation)
         if covariance is None:
             covariance = np.diag([pos_std ** 2] * 3 + [angle_std ** 2] * 3)
-        cov = frames.pose_covariance_enu_to_ned(covariance)[np.triu_indices(6)]
+        ned = yaw_only_attitude(frames.pose_covariance_enu_to_ned(covariance))
+        cov = ned[np.triu_indices(6)]
         values = np.concatenate([p, [roll, pitch, yaw], cov])
         if not (np.abs(values) <= FLOAT32_MAX).all():   # NaN fails too
             raise ValueError('vision pose or covariance is not finite in float32 (the wire type)')

@@ -98,7 +98,10 @@ class Scenario:
 
     With `gps_denied` the autopilot has no GPS: the relay feeds it the ground station's
     pose as external navigation (vision_pose_topic, ekf_origin), and ArduPilot SITL runs
-    with config/ardupilot_gps_denied.parm.
+    with config/ardupilot_gps_denied.parm; with `external_nav` 'fused' it feeds the pose
+    filter's fused/odom instead, with its covariance (SITL adds
+    config/ardupilot_fused_nav.parm), the filter run without the autopilot's odometry,
+    which would bring EKF3's own estimate back into it.
 
     With `fused` the controller flies the hold and the setpoints on the pose filter's
     estimate (fused/pose; Configs.pose_filter), and with `blind` the ground cameras are
@@ -112,6 +115,7 @@ class Scenario:
     landing: Landing | None = None
     gps_denied: bool = False
     follow: Follow | None = None
+    external_nav: str = 'ground'     # without GPS: 'ground' (ground/pose) or 'fused'
     fused: bool = False
     blind: float = 0.0           # s
 
@@ -127,13 +131,25 @@ LAND_ON_PAD = Scenario('land_on_pad', 1.5, Setpoint((0.0, 0.0, 1.5)),
 DEMO = Scenario('demo', 1.5, Setpoint((0.0, 0.0, 1.5), hold=3.0), SETPOINTS.setpoints,
                 Landing((0.6, 0.4)))
 GPS_DENIED = Scenario('gps_denied', 1.5, Setpoint((0.0, 0.0, 1.5), hold=5.0), gps_denied=True)
+GPS_DENIED_FUSED = Scenario('gps_denied_fused', 1.5, Setpoint((0.0, 0.0, 1.5), hold=5.0),
+                            gps_denied=True, external_nav='fused')
 FOLLOW = Scenario('follow', 1.5, Setpoint((0.0, 0.0, 1.5)), follow=Follow())
 BLIND = Scenario('blind', 1.5, Setpoint((0.0, 0.0, 1.5), hold=3.0), SETPOINTS.setpoints[:2],
                  Landing((0.6, 0.4)), fused=True, blind=3.0)
-SCENARIOS = {s.name: s for s in (HOLD, SETPOINTS, LAND_ON_PAD, DEMO, GPS_DENIED, FOLLOW,
-                                 BLIND)}
-# The parameters ArduPilot flies GPS_DENIED with, after its defaults.
+SCENARIOS = {s.name: s for s in (HOLD, SETPOINTS, LAND_ON_PAD, DEMO, GPS_DENIED,
+                                 GPS_DENIED_FUSED, FOLLOW, BLIND)}
+# The parameters ArduPilot flies GPS_DENIED with, after its defaults; and after those, on
+# the fused estimate (GPS_DENIED_FUSED).
 GPS_DENIED_PARAMS = default_config_path('ardupilot_gps_denied.parm')
+FUSED_NAV_PARAMS = default_config_path('ardupilot_fused_nav.parm')
+
+
+def sitl_params(scenario: Scenario) -> tuple[Path, ...]:
+    """The parameter files ArduPilot SITL flies `scenario` with, after its defaults."""
+    if not scenario.gps_denied:
+        return ()
+    return (GPS_DENIED_PARAMS, *((FUSED_NAV_PARAMS,) if scenario.external_nav == 'fused'
+                                 else ()))
 
 
 @dataclass(frozen=True)
@@ -280,14 +296,19 @@ class _Mission:
         self.events: dict = dict(setpoints=[], pad=scenario.landing.pad if scenario.landing
                                  else None)
 
+    def _fused_nav(self) -> bool:
+        """Whether the controller or the autopilot's EKF flies on the pose filter's estimate."""
+        s = self.scenario
+        return s.fused or (s.gps_denied and s.external_nav == 'fused')
+
     @property
     def _source(self) -> str:
         """The pose the controller flies the hold and the setpoints on."""
         return 'fused' if self.scenario.fused else 'ground'
 
     def run(self, startup_timeout: float) -> FlightLog:
-        if self.scenario.fused and self.configs.pose_filter is None:
-            raise ValueError(f'scenario {self.scenario.name} flies on fused/pose: '
+        if self._fused_nav() and self.configs.pose_filter is None:
+            raise ValueError(f'scenario {self.scenario.name} flies on the fused estimate: '
                              'Configs.pose_filter must name the pose filter\'s params file')
         self.cameras = list(read_params_file(self.configs.ground)['cameras.names'])
         self.rec = FlightRecorder(self.cameras[0], self.ns,
@@ -391,8 +412,10 @@ class _Mission:
             self._start('link_monitor_node', 'link_monitor_node', [
                 '--params-file', str(default_config_path('link_monitor.yaml'))])
         if c.pose_filter is not None:
+            own_odometry = ['-p', "pose_filter.odometry_topic:=''"] if (
+                self.scenario.gps_denied and self.scenario.external_nav == 'fused') else []
             self._start('pose_filter_node', 'pose_filter_node',
-                        ['--params-file', str(c.pose_filter)])
+                        ['--params-file', str(c.pose_filter), *own_odometry])
         if c.frames is not None:
             self._start('frames_node', 'frames_node', [
                 a for f in (c.frames, c.ground, c.onboard) for a in ('--params-file', str(f))])
@@ -407,8 +430,10 @@ class _Mission:
                 raise MissionError(f'{self.scenario.name} needs an autopilot with an EKF: '
                                    'ArduPilot SITL')
             lat, lon, alt = self.sitl.origin
-            relay_args = ['-p', 'vision_pose_topic:=ground/pose',
-                          '-p', f'ekf_origin:=[{lat:.7f}, {lon:.7f}, {alt:.2f}]']
+            nav = (['-p', 'vision_pose_topic:=fused/odom', '-p', 'vision_pose_type:=odometry']
+                   if self.scenario.external_nav == 'fused' else
+                   ['-p', 'vision_pose_topic:=ground/pose'])
+            relay_args = [*nav, '-p', f'ekf_origin:=[{lat:.7f}, {lon:.7f}, {alt:.2f}]']
         else:
             relay_args = []
         if self.member is not None:

@@ -10,8 +10,11 @@ Subscribes `cmd_vel` (geometry_msgs/TwistStamped): header.frame_id `world_frame`
 skipped. A publisher of another type on `cmd_vel` (e.g. geometry_msgs/Twist) is never
 heard: the relay warns once per publisher and type, naming both types, and lists it in
 the diagnostics (`cmd_vel_wrong_type`), polled with the diagnostics. Optionally
-subscribes `vision_pose_topic` (PoseStamped in `world_frame`) and forwards it to the
-autopilot's EKF as VISION_POSITION_ESTIMATE.
+subscribes `vision_pose_topic` (in `world_frame`, of `vision_pose_type`: PoseStamped with
+the `vision.*` standard deviations, or PoseWithCovarianceStamped or nav_msgs/Odometry,
+e.g. pose_filter_node's fused/odom, with the covariance it carries) and forwards it to
+the autopilot's EKF as VISION_POSITION_ESTIMATE (roll and pitch with the yaw's variance:
+Session.send_vision_pose); a covariance that is not one is malformed.
 Publishes `autopilot/odom` (nav_msgs/Odometry: pose in `world_frame`, twist in
 `body_frame`, REP-105; covariances from PX4's ODOMETRY, zero (unknown) from ArduPilot,
 which reports none) and link, mode, arming, readiness and command state on /diagnostics.
@@ -42,7 +45,7 @@ import threading
 import time
 from typing import Callable
 
-from geometry_msgs.msg import PoseStamped, TwistStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.duration import Duration
@@ -58,7 +61,7 @@ from uav_vs.autopilot.link import connection_problem, key_file_exposure, load_si
 from uav_vs.autopilot.session import (AutopilotError, CommandState, EkfStatus, LinkState, Limits,
                                       Session, SessionConfig)
 from uav_vs.ros import log_bridge
-from uav_vs.ros.convert import msg_to_pose, odometry_to_msg, stamp_to_ns
+from uav_vs.ros.convert import msg_to_pose, msg_to_pose_cov_in, odometry_to_msg, stamp_to_ns
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, ThrottledWarnings, run
 from uav_vs.ros.params import LiveParams, Param, ParameterError, T, declare
 
@@ -76,6 +79,9 @@ RATES = {'rates.local_position': 'LOCAL_POSITION_NED', 'rates.attitude': 'ATTITU
          'rates.global_position': 'GLOBAL_POSITION_INT', 'rates.sys_status': 'SYS_STATUS',
          'rates.ekf_status': 'EKF_STATUS_REPORT', 'rates.gps_raw': 'GPS_RAW_INT',
          'rates.odometry': 'ODOMETRY'}
+
+# vision_pose_type -> the message type subscribed
+VISION_TYPES = {'pose': PoseStamped, 'pose_cov': PoseWithCovarianceStamped, 'odometry': Odometry}
 
 PARAMS = [
     Param('connection', T.STRING, description=(
@@ -135,6 +141,10 @@ PARAMS = [
           'made at start-up)', 0.05, 60.0),
     Param('vision_pose_topic', T.STRING, '', "PoseStamped forwarded as VISION_POSITION_ESTIMATE "
           "('': off)"),
+    Param('vision_pose_type', T.STRING, 'pose', "vision_pose_topic's message: 'pose' "
+          "(PoseStamped, with vision.position_std and vision.angle_std), 'pose_cov' "
+          "(PoseWithCovarianceStamped) or 'odometry' (nav_msgs/Odometry, its pose), the last "
+          'two with the covariance they carry', choices=tuple(VISION_TYPES)),
     Param('vision.position_std', T.DOUBLE, 0.1, 'vision position standard deviation, m',
           1e-4, 100.0, live=True),
     Param('vision.angle_std', T.DOUBLE, 0.05, 'vision attitude standard deviation, rad',
@@ -240,9 +250,11 @@ class MavlinkRelayNode(Node):
         self.cmd_sub = self.create_subscription(TwistStamped, 'cmd_vel', self.on_cmd_vel,
                                                 COMMAND_QOS)
         if p['vision_pose_topic']:
+            kind, callback = VISION_TYPES[p['vision_pose_type']], self.on_vision_pose
+            if kind is not PoseStamped:
+                callback = self.on_vision_pose_cov
             try:
-                self.create_subscription(PoseStamped, p['vision_pose_topic'], self.on_vision_pose,
-                                         NEWEST_QOS)
+                self.create_subscription(kind, p['vision_pose_topic'], callback, NEWEST_QOS)
             except NameValidationException as err:
                 raise ParameterError(f'vision_pose_topic: {err}'.splitlines()[0]) from None
         self.odom_pub = self.create_publisher(Odometry, 'autopilot/odom', 10)
@@ -302,6 +314,15 @@ class MavlinkRelayNode(Node):
             if self.session.send_vision_pose(position, orientation, stamp, **self.vision_std):
                 self.counts['vision'] += 1
         except ValueError as err:
+            self.malformed('vision value', f'vision pose: {err}')
+
+    def on_vision_pose_cov(self, msg: PoseWithCovarianceStamped | Odometry) -> None:
+        try:
+            position, orientation, covariance = msg_to_pose_cov_in(msg, self.world)
+            if self.session.send_vision_pose(position, orientation,
+                                             stamp_to_ns(msg.header.stamp) * 1e-9, covariance):
+                self.counts['vision'] += 1
+        except ValueError as err:        # MessageError too: frame, rotation, covariance
             self.malformed('vision value', f'vision pose: {err}')
 
     def malformed(self, kind: str, why: str) -> None:

@@ -254,9 +254,10 @@ def pose_cov_to_msg(position: np.ndarray, quaternion_xyzw: np.ndarray, covarianc
     return msg
 
 
-def msg_to_pose_cov_in(msg: PoseWithCovarianceStamped, frame: str
+def msg_to_pose_cov_in(msg: PoseWithCovarianceStamped | Odometry, frame: str
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """msg_to_pose_in of a pose with covariance, and its 6x6 covariance: MessageError
+    """msg_to_pose_in of a pose with covariance (or an Odometry's pose, which has the same
+    fields), and its 6x6 covariance: MessageError
     unless that is a covariance: finite with a positive diagonal, and its correlation
     matrix symmetric with no negative eigenvalue (to 1e-9)."""
     position, q = msg_to_pose_in(PoseStamped(header=msg.header, pose=msg.pose.pose), frame)
