@@ -34,6 +34,7 @@ from uav_vs.vision.onboard_config import load_onboard_config
 from uav_vs.vision.plane_geometry import (REFINERS, plane_homography, pose_from_plane_homography,
                                           refine_plane_pose)
 from uav_vs.vision.plane_pose import PlanePoseEstimator
+from uav_vs.vision.plane_pose_covariance import fit_covariance
 
 SUITE = 'onboard'
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'onboard.yaml'
@@ -172,12 +173,53 @@ def refine_cases() -> list[dict]:
             for m, other in (('lm', 'opencv'), ('opencv', 'lm'))]
 
 
+def covariance_case() -> dict:
+    """The pose's fit covariance per frame (uav_vs.vision.plane_pose_covariance: sigma^2
+    (J^T J)^-1 of 100 inliers, to base_link in world), on the refined poses of
+    refine_views. Reference: central differences of the whole fit (each of the 200 pixel
+    coordinates moved, the pose refined again, the camera's centre and rotation taken);
+    the largest relative difference of their standard deviations is the accuracy figure."""
+    K = np.array([[525.0, 0.0, 320.0], [0.0, 525.0, 240.0], [0.0, 0.0, 1.0]])
+    views = []
+    for R, t, xy, px, R0, t0 in refine_views(K, count=10):
+        fit = refine_plane_pose(K, xy, px, R0, t0, method='opencv')
+        views.append((fit.R, fit.t, np.c_[xy, np.zeros(len(xy))], px))
+
+    def analytic(R, t, xyz, px) -> np.ndarray:
+        return fit_covariance(K, R, t, xyz, px, -R.T @ t, 0.0)[0]
+
+    def numeric(R, t, xyz, px) -> np.ndarray:
+        sigma = fit_covariance(K, R, t, xyz, px, -R.T @ t, 0.0)[1]
+        flat, h = px.reshape(-1), 1e-3
+        G = np.empty((6, flat.size))
+        for j in range(flat.size):
+            moved = []
+            for step in (h, -h):
+                shifted = flat.copy()
+                shifted[j] += step
+                f = refine_plane_pose(K, xyz, shifted.reshape(px.shape), R, t, method='lm')
+                turn = Rotation.from_matrix(f.R.T @ R).as_rotvec()    # world rotation
+                moved.append(np.r_[-f.R.T @ f.t, turn])
+            G[:, j] = (moved[0] - moved[1]) / (2 * h)
+        return sigma ** 2 * G @ G.T
+
+    ms = np.concatenate([timeit(lambda v=v: analytic(*v), repeat=100, warmup=5) for v in views])
+    ref_ms = timeit(lambda: numeric(*views[0]), repeat=3, warmup=0)
+    worst = 0.0
+    for v in views[:5]:
+        a, b = np.sqrt(np.diag(analytic(*v))), np.sqrt(np.diag(numeric(*v)))
+        worst = max(worst, float(np.max(np.abs(a / b - 1))))
+    return report(SUITE, 'onboard/pose_covariance', ms, reference='central differences of the fit',
+                  ref_ms=ref_ms, max_sd_difference=round(worst, 4))
+
+
 def pose_cases() -> list[dict]:
     """Both resolutions, on one OpenCV thread (the target is one core)."""
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
-        return [pose_case(640, 480), pose_case(1280, 720), *refine_cases(), relocalise_case()]
+        return [pose_case(640, 480), pose_case(1280, 720), *refine_cases(), covariance_case(),
+                relocalise_case()]
     finally:
         cv2.setNumThreads(threads)
 

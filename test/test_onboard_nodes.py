@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PolygonStamped, PoseStamped
+from geometry_msgs.msg import PolygonStamped, PoseStamped, PoseWithCovarianceStamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CompressedImage, Image
@@ -23,8 +23,8 @@ from visualization_msgs.msg import ImageMarker
 from conftest import REPO, wait_for
 from uav_vs.graph import executable, stop
 from uav_vs.flight.onboard_replay import replay_onboard_bag
-from uav_vs.ros.convert import (bgr_to_compressed, bgr_to_image, msg_to_pose, ns_to_stamp,
-                                polygon_to_array, pose_to_msg, stamp_to_ns)
+from uav_vs.ros.convert import (bgr_to_compressed, bgr_to_image, msg_to_pose, msg_to_pose_cov_in,
+                                ns_to_stamp, polygon_to_array, pose_to_msg, stamp_to_ns)
 from uav_vs.sim.onboard_scene import OnboardScene
 from uav_vs.vision.ground_config import read_params_file
 from uav_vs.vision.onboard_config import load_onboard_config
@@ -231,6 +231,37 @@ def test_textureless_and_blurred_frames_give_no_pose_and_diagnostics_say_why(
     p, q = msg_to_pose(probe.poses[stamps[4]])
     assert np.linalg.norm(p - p_true) < 0.01 * p_true[2]
     assert np.degrees((Rotation.from_matrix(R).inv() * Rotation.from_quat(q)).magnitude()) < 0.5
+
+
+def test_each_pose_comes_with_its_covariance_on_pose_cov(ros_node, processes, cfg):
+    """onboard/pose_cov carries every pose of onboard/pose (same stamp, same pose) with a
+    covariance (uav_vs.vision.plane_pose_covariance): the first frame's the init sigmas',
+    the tracked ones larger by their fit's; the diagnostics give the pixel noise taken."""
+    processes('homography_pose_node', POSE_NODE_ARGS)
+    probe = Probe(ros_node)
+    covs: dict[int, PoseWithCovarianceStamped] = {}
+    ros_node.create_subscription(PoseWithCovarianceStamped, '/onboard/pose_cov',
+                                 lambda m: covs.setdefault(stamp_to_ns(m.header.stamp), m),
+                                 RELIABLE)
+    assert wait_for(probe.ready, 30)
+    scene = OnboardScene(cfg.camera, cfg.camera_to_body, seed=3)
+    for k in range(4):
+        frame = scene.render(*level_pose(0.01 * k, -0.005 * k, 1.0 + 0.01 * k, 0.01 * k))
+        probe.compressed.publish(bgr_to_compressed(frame, header(k)))
+    assert wait_for(lambda: len(covs) == 4 and len(probe.poses) == 4, 15), probe.status
+    assert sorted(covs) == sorted(probe.poses)
+    first = cfg.params.init_position_sigma ** 2, cfg.params.init_angle_sigma ** 2
+    for k, stamp in enumerate(sorted(covs)):
+        position, q, cov = msg_to_pose_cov_in(covs[stamp], 'world')   # a covariance
+        p, q_pose = msg_to_pose(probe.poses[stamp])
+        assert np.allclose(position, p) and np.allclose(q, q_pose)
+        variances = np.diag(cov)
+        if k == 0:
+            assert np.allclose(variances, [first[0]] * 3 + [first[1]] * 3)
+        else:
+            assert np.all(variances[:3] > first[0]) and np.all(variances[3:] > first[1])
+    assert wait_for(lambda: probe.value('pixel_sigma') not in (None, ''), 5), probe.status
+    assert float(probe.value('pixel_sigma')) >= cfg.params.pixel_sigma_floor
 
 
 def test_initialised_at_the_ground_pose_at_its_first_frames_stamp(ros_node, processes, cfg):

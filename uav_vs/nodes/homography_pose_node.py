@@ -12,8 +12,12 @@ keyframe's plane homography and decomposed (eq 27), refined on the inliers; afte
 loss, the keyframe is found again by descriptor matches (section 2.2, `relocalise.*`).
 Publishes `onboard/pose` (geometry_msgs/PoseStamped, frame `homography_pose.frame_id`
 = `world` ENU: the base_link pose, stamped with the image's stamp) only for frames that
-gave a pose, and /diagnostics: tracked features, inliers, RANSAC trials, reprojection
-RMS, re-anchors, relocalisations, lost frames, malformed images and, when lost, why.
+gave a pose, the same with its covariance on `onboard/pose_cov`
+(geometry_msgs/PoseWithCovarianceStamped, uav_vs.vision.plane_pose_covariance: the
+refined fit's and the keyframes' drift; while something subscribes), and /diagnostics:
+tracked features, inliers, RANSAC trials, reprojection RMS, the pixel noise the
+covariance took, re-anchors, relocalisations, lost frames, malformed images and, when
+lost, why.
 
 The first image initialises the estimator (init.*); until that succeeds (a blurred or
 texture-less first frame) every new image retries. With `init.mode` pose_topic it is
@@ -30,14 +34,15 @@ import time
 from typing import Callable
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from scipy.spatial.transform import Rotation
 from std_msgs.msg import Header
 
 from uav_vs.control.follow import PoseHistory
-from uav_vs.ros.convert import MessageError, msg_to_pose_in, pose_to_msg, stamp_to_ns
+from uav_vs.ros.convert import (MessageError, msg_to_pose_in, pose_cov_to_msg, pose_to_msg,
+                                stamp_to_ns)
 from uav_vs.ros.image_input import QOS_CHOICES, ImageInput, InputLimits, stamp_params
 from uav_vs.ros.node_main import ERROR, OK, WARN, Diagnostics, run
 from uav_vs.ros.params import REQUIRED, LiveParams, Param, T, declare
@@ -57,7 +62,8 @@ LIVE = {'features.max_features', 'features.min_tracks', 'homography.method',
         'homography.threshold_px', 'homography.confidence', 'homography.max_trials',
         'homography.min_inliers', 'pose.max_rms_px', 'keyframe.reanchor_inliers',
         'keyframe.reanchor_coverage', 'relocalise.after_frames', 'relocalise.ratio',
-        'relocalise.max_shift', 'image_quality.blur_level', 'image_quality.min_sharpness'}
+        'relocalise.max_shift', 'image_quality.blur_level', 'image_quality.min_sharpness',
+        'covariance.pixel_sigma_floor'}
 ONBOARD_PARAMS = [Param(s.key, _TYPES[s.kind], REQUIRED if s.default is None else s.default,
                         s.description, s.low, s.high, s.choices, s.size or None,
                         live=s.key in LIVE)
@@ -74,8 +80,8 @@ NODE_PARAMS = [
     *stamp_params('homography_pose'),
 ]
 
-STATS = ('sharpness', 'tracked', 'inliers', 'trials', 'rms_px', 'reanchors', 'relocalisations',
-         'lost_frames')
+STATS = ('sharpness', 'tracked', 'inliers', 'trials', 'rms_px', 'pixel_sigma', 'reanchors',
+         'relocalisations', 'lost_frames')
 
 
 class HomographyPoseNode(Node):
@@ -91,6 +97,8 @@ class HomographyPoseNode(Node):
                                                         seed=p['homography_pose.seed'])
         self.estimator = self.new_estimator()
         self.pose_pub = self.create_publisher(PoseStamped, 'onboard/pose', 10)
+        self.pose_cov_pub = self.create_publisher(PoseWithCovarianceStamped, 'onboard/pose_cov',
+                                                  10)
         self.images = ImageInput(self, 'onboard/image_raw', p['homography_pose.image_qos'],
                                  self.on_frame, (cfg.camera.width, cfg.camera.height),
                                  limits=InputLimits.of(p, 'homography_pose'),
@@ -199,8 +207,11 @@ class HomographyPoseNode(Node):
             self.lose(header, result.reason)
             return
         self.counts['poses'] += 1
-        self.pose_pub.publish(pose_to_msg(result.position, result.quaternion,
-                                          Header(stamp=header.stamp, frame_id=self.frame_id)))
+        out = Header(stamp=header.stamp, frame_id=self.frame_id)
+        self.pose_pub.publish(pose_to_msg(result.position, result.quaternion, out))
+        if self.pose_cov_pub.get_subscription_count():
+            self.pose_cov_pub.publish(pose_cov_to_msg(result.position, result.quaternion,
+                                                      result.covariance, out))
 
     def publish_diagnostics(self) -> None:
         reason = self.last['reason']

@@ -121,6 +121,14 @@ SETTINGS = (
     Setting('pose.refine', 'str', _P.refine,
             "pose refinement on the inliers: opencv (cv2.solvePnPRefineLM) or lm (eq 27 by "
             "this package's Levenberg-Marquardt)", choices=REFINERS),
+    Setting('covariance.pixel_sigma_floor', 'float', _P.pixel_sigma_floor,
+            "the pose covariance's pixel noise is never taken smaller than this, px",
+            0.001, 10.0),
+    Setting('covariance.init_position_sigma', 'float', _P.init_position_sigma,
+            "the first keyframe's position uncertainty (the init pose's), m per axis",
+            1e-4, 100.0),
+    Setting('covariance.init_angle_sigma', 'float', _P.init_angle_sigma,
+            "the first keyframe's rotation uncertainty, rad per axis", 1e-5, 3.2),
     Setting('keyframe.reanchor_inliers', 'int', _P.reanchor_inliers,
             're-anchor when inliers drop below this', 4, 5000),
     Setting('keyframe.reanchor_coverage', 'float', _P.reanchor_coverage,
@@ -227,7 +235,8 @@ def load_onboard_config(params: Mapping[str, object]) -> OnboardConfig:
         v['homography.max_trials'], v['pose.max_rms_px'], v['image_quality.blur_level'],
         v['image_quality.min_sharpness'], v['relocalise.after_frames'],
         v['relocalise.features'], v['relocalise.max_features'], v['relocalise.ratio'],
-        v['relocalise.max_shift'], v['pose.refine'])
+        v['relocalise.max_shift'], v['pose.refine'], v['covariance.pixel_sigma_floor'],
+        v['covariance.init_position_sigma'], v['covariance.init_angle_sigma'])
     return OnboardConfig(camera, T, H0, pose, v['init.mode'], init_pose)
 
 

@@ -97,13 +97,13 @@ def refine_plane_pose(K: np.ndarray, plane_xy: np.ndarray, pixels: np.ndarray,
             raise ValueError(f'method opencv: cv2.solvePnPRefineLM ignores the skew of K '
                              f'(K[0,1] = {K[0, 1]:g}); use lm')
         return _refine_opencv(K, xyz, px, R, t, iterations, tol)
-    r, J = _linearise(K, R, t, xyz, px)
+    r, J = linearise(K, R, t, xyz, px)
     cost, lam, steps = float(r @ r), 1e-3, 0
     while steps < iterations and lam < 1e12:
         A, g = J.T @ J, J.T @ r
         d = np.linalg.solve(A + lam * np.diag(np.maximum(np.diag(A), 1e-12)), -g)
         R_new, t_new = cv2.Rodrigues(d[:3])[0] @ R, t + d[3:]
-        r_new, J_new = _linearise(K, R_new, t_new, xyz, px)
+        r_new, J_new = linearise(K, R_new, t_new, xyz, px)
         cost_new = float(r_new @ r_new)
         if not cost_new < cost:
             lam *= 10.0
@@ -128,7 +128,7 @@ def _refine_opencv(K: np.ndarray, xyz: np.ndarray, px: np.ndarray, R: np.ndarray
     return RefinedPose(R, t, float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))), None)
 
 
-def _linearise(K: np.ndarray, R: np.ndarray, t: np.ndarray, xyz: np.ndarray, px: np.ndarray
+def linearise(K: np.ndarray, R: np.ndarray, t: np.ndarray, xyz: np.ndarray, px: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (2N,) of eq 27 and their Jacobian (2N,6) in (w, dt), w the left rotation.
 

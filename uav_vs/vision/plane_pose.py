@@ -47,6 +47,7 @@ from uav_vs.vision.homography import estimate_homography
 from uav_vs.vision.klt import KltParams, KltTracker
 from uav_vs.vision.plane_geometry import (DEFAULT_REFINER, plane_homography,
                                           pose_from_plane_homography, refine_plane_pose)
+from uav_vs.vision.plane_pose_covariance import fit_covariance
 
 
 @dataclass(frozen=True)
@@ -72,6 +73,9 @@ class PlanePoseParams:
     relocalise_ratio: float = 0.8    # Lowe's ratio test for relocalisation matches
     relocalise_max_shift: float = 1.0  # camera moved farther than this x its height: refused
     refine: str = DEFAULT_REFINER    # pose refinement on the inliers (plane_geometry.REFINERS)
+    pixel_sigma_floor: float = 0.1   # the covariance's pixel noise is never taken smaller, px
+    init_position_sigma: float = 0.02  # the first keyframe's pose: its position, m per axis
+    init_angle_sigma: float = 0.01   # ... and its rotation, rad per axis
 
 
 @dataclass
@@ -80,8 +84,10 @@ class PlanePose:
 
     position, R, quaternion (x y z w): base_link in `world` when a camera-to-body
     extrinsic is set, else the camera optical frame. camera_position / camera_R are
-    always the optical frame in `world`; H maps the plane to ideal pixels. When ok
-    is False the pose fields are None and `reason` says why (tracking loss).
+    always the optical frame in `world`; H maps the plane to ideal pixels; `covariance`
+    is the pose's (x, y, z, rotation about world x, y, z: uav_vs.vision.
+    plane_pose_covariance). When ok is False the pose fields are None and `reason` says
+    why (tracking loss).
     """
 
     ok: bool
@@ -93,6 +99,7 @@ class PlanePose:
     H: np.ndarray | None = None
     reason: str = ''
     stats: dict = field(default_factory=dict)
+    covariance: np.ndarray | None = None
 
 
 def body_pose(R_cw: np.ndarray, t: np.ndarray, camera_to_body: np.ndarray | None
@@ -151,6 +158,7 @@ class PlanePoseEstimator:
         self._motion = np.eye(3)                    # last good inter-frame homography
         self._key_features: DescribedImage | None = None   # the keyframe's, when needed
         self._centre = np.zeros(3)                  # camera centre of the last good frame, m
+        self._map_cov = np.zeros((6, 6))            # the tracks' plane points' error (drift)
         self.reanchors = 0
         self.relocalisations = 0
         self.lost_frames = 0
@@ -158,6 +166,12 @@ class PlanePoseEstimator:
     @property
     def initialised(self) -> bool:
         return self._key is not None
+
+    @property
+    def drift_covariance(self) -> np.ndarray:
+        """6x6 covariance of the error the tracks' plane points carry (the first keyframe's
+        and the re-anchors'): what every pose has beside its own fit's."""
+        return self._map_cov.copy()
 
     def initialise(self, gray: np.ndarray, init: np.ndarray | tuple) -> PlanePose:
         """Start on `gray` with the first frame's plane-to-image homography H_0.
@@ -187,9 +201,12 @@ class PlanePoseEstimator:
         self._new_keyframe(gray, H0 / H0[2, 2], new)
         self.reanchors, self.relocalisations, self.lost_frames = 0, 0, 0
         self._motion = np.eye(3)
+        p = self.params
+        self._map_cov = np.diag([p.init_position_sigma ** 2] * 3 + [p.init_angle_sigma ** 2] * 3)
         R, t = pose_from_plane_homography(self.camera.K, H0)
         return self._result(R, t, {**stats, 'tracked': len(new), 'inliers': len(new),
-                                   'trials': 0, 'rms_px': 0.0, 'reanchored': True})
+                                   'trials': 0, 'rms_px': 0.0, 'reanchored': True},
+                            np.zeros((6, 6)))
 
     def update(self, gray: np.ndarray) -> PlanePose:
         """Pose for the next frame, or a tracking loss with the reason (state kept)."""
@@ -254,15 +271,22 @@ class PlanePoseEstimator:
         self._motion = est.H @ np.linalg.inv(H_prev)
         self._H_prev, self._kf_px, self._xyz = est.H, kf_px, xyz
         self.lost_frames = 0
+        fit, sigma = fit_covariance(
+            self.camera.K, R, t, xyz, pts, body_pose(R, t, self.camera_to_body)[1],
+            p.pixel_sigma_floor)
+        stats['pixel_sigma'] = round(sigma, 3)
+        result = self._result(R, t, stats, fit)
         stats['reanchored'] = bool(self._needs_reanchor(pts))
         if stats['reanchored']:
             # Survivors keep their plane points (anchoring); new features get theirs
-            # from the current estimate.
+            # from the current estimate, and its error with them.
             self._kf_px = pts
             new = self.klt.top_up(gray, raw[ok][est.inliers], p.max_features, self._region)
             self._new_keyframe(gray, plane_homography(self.camera.K, R, t), new)
+            self._map_cov = self._map_cov + fit
             self.reanchors += 1
-        return self._result(R, t, stats)
+        stats.update(self._counters())
+        return result
 
     def _relocalise(self, gray: np.ndarray) -> np.ndarray | None:
         """Keyframe-to-frame homography (ideal px) from descriptor matches, or None."""
@@ -345,13 +369,16 @@ class PlanePoseEstimator:
         stats.update(self._counters())
         return PlanePose(False, reason=reason, stats=stats)
 
-    def _result(self, R: np.ndarray, t: np.ndarray, stats: dict) -> PlanePose:
+    def _result(self, R: np.ndarray, t: np.ndarray, stats: dict, fit: np.ndarray
+                ) -> PlanePose:
+        """The frame's pose, its covariance that of the fit `fit` and of the map."""
         R_wc, c = body_pose(R, t, None)
         R_w, pos = body_pose(R, t, self.camera_to_body)
         self._centre = c
         stats.update(self._counters())
         return PlanePose(True, pos, Rotation.from_matrix(R_w).as_quat(), R_w, c, R_wc,
-                         plane_homography(self.camera.K, R, t), '', stats)
+                         plane_homography(self.camera.K, R, t), '', stats,
+                         fit + self._map_cov)
 
 
 class KeyframeWarp:
