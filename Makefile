@@ -30,8 +30,9 @@ UBUNTU_TESTS ?= test
 CORE_TESTS := $(addprefix test/test_,$(addsuffix .py,body_pose calibration_error camera \
 	camera_effects delay_line docs features frame_sync frames fuzzy_control fuzzy_engine \
 	ground_scene homography klt landmarks landmarks_megamind liveness mavlink_limits \
-	onboard_scene oxford plane_geometry plane_pose pose_covariance pose_filter rig_timing \
-	sensor_switches servo sim_world target_tracking template_align triangulation))
+	onboard_scene oxford plane_geometry plane_pose plane_pose_covariance pose_covariance \
+	pose_filter rig_timing sensor_switches servo sim_world target_tracking template_align \
+	triangulation))
 
 .PHONY: install test test-loaded test-ubuntu2404 fuzz bench demo clean
 

@@ -468,6 +468,8 @@ def test_the_cli_calibrates_the_caliscope_rig_end_to_end(caliscope, caliscope_fo
     assert latency and 100 < float(latency[1]) < 140, run.stdout     # the library's ~120 ms
     block = yaml.safe_load((tmp_path / 'cameras.yaml').read_text())['cameras']
     assert block['names'] == ['cam_0', 'cam_1']
+    assert block['cam_0']['latency'] == 0.0       # what the ground station takes off
+    assert block['cam_1']['latency'] == pytest.approx(float(latency[1]) / 1000, abs=1e-4)
     R = np.reshape(block['cam_1']['R'], (3, 3))
     assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and 'rig: 2 cameras' in run.stdout
     K = np.reshape(block['cam_1']['K'], (3, 3))

@@ -23,7 +23,7 @@ from conftest import REPO, wait_for
 from uav_vs.flight.ground_replay import DEFAULT_LAYOUT, replay_ground_bag
 from uav_vs.graph import executable
 from uav_vs.ros.convert import (bgr_to_image, msg_to_pose, ns_to_stamp, points_to_polygon,
-                                polygon_to_array, yaw_of)
+                                polygon_to_array, stamp_to_ns, yaw_of)
 from uav_vs.vision.ground_config import load_ground_config, read_params_file
 
 CONFIG = REPO / 'config' / 'ground_trinocular.yaml'
@@ -94,6 +94,7 @@ def _broken_config(tmp_path: Path, path: list[str], value) -> Path:
     (['cameras', 'cam1', 'R'], [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 2.0],
      'cameras.cam1.R: expected a rotation matrix'),
     (['landmarks', 'red', 'position'], None, 'landmarks.red.position: missing'),
+    (['cameras', 'cam2', 'latency'], 2.0, 'cameras.cam2.latency: expected a number in [-1, 1]'),
 ])
 def test_bad_calibration_stops_pose_node_with_one_line(tmp_path, path, value, expected):
     cfg = _broken_config(tmp_path, path, value)
@@ -307,6 +308,28 @@ def test_pose_survives_a_landmark_lost_in_one_camera_and_needs_two_landmarks(ros
     assert wait_for(lambda: _last_diagnostics(diags, name).get('no_pose') == '1', 10), diags
     assert len(poses) == 1
     assert 'landmark' in diags[name].message
+
+
+def test_a_camera_latency_is_taken_off_its_stamps_before_the_match(ros_node, processes):
+    """cam2 stamps its frames 80 ms after the instant they show (cameras.cam2.latency
+    0.08, far beyond trinocular.sync_tolerance): its frames match the others' of the same
+    instant, and the pose is stamped with that instant, not cam2's stamp."""
+    cfg, _, poses, diags, pubs = _trinocular(ros_node, processes,
+                                             '-p', 'cameras.cam2.latency:=0.08')
+    truth_pos, truth_yaw = np.array([0.4, -0.3, 1.2]), 2.5
+    pixels = _project_layout(cfg, truth_pos, truth_yaw)
+    instants = [1_000_000_000 + k * 66_666_667 for k in range(3)]
+    for when in instants:
+        for k, (pub, px) in enumerate(zip(pubs, pixels)):
+            late = 80_000_000 if CAMERAS[k] == 'cam2' else 0
+            pts = np.column_stack([px, np.ones(len(px))])
+            pub.publish(points_to_polygon(pts, Header(stamp=ns_to_stamp(when + late))))
+    assert wait_for(lambda: len(poses) >= 2, 10), diags
+    time.sleep(0.5)
+    assert [stamp_to_ns(p.header.stamp) for p in poses] == instants[:len(poses)]
+    name = '/trinocular_pose_node'
+    assert wait_for(lambda: _last_diagnostics(diags, name).get('cameras_used') == '3', 10)
+    assert np.linalg.norm(msg_to_pose(poses[0])[0] - truth_pos) < 1e-6
 
 
 def test_a_silent_camera_warns_and_all_silent_is_an_error(ros_node, processes):

@@ -2,7 +2,9 @@
 
 Subscribes `<camera>/landmarks` (geometry_msgs/PolygonStamped, one point per
 landmark in `landmarks.names` order: x, y = raw pixel centroid, z = confidence,
-NaN when not found) for every camera in `cameras.names`; synchronises them by stamp;
+NaN when not found) for every camera in `cameras.names`; synchronises them by stamp
+(each camera's `cameras.<name>.latency` taken off its stamps first, so that a frame set
+and its pose are stamped with the instant the cameras saw);
 triangulates (eq 24-25) and solves yaw + position (eq 26).
 Publishes `ground/pose` (PoseStamped, `world` ENU), the same pose with its covariance on
 `ground/pose_cov` (PoseWithCovarianceStamped: the landmarks' pixel noise pooled from the
@@ -150,7 +152,7 @@ class TrinocularPoseNode(QuietPublisherNode):
                 f'{self.cfg.cameras[k].name}/landmarks: {len(pts)} points, expected {self.n_lm}'
                 ' (landmarks.names); skipped', throttle_duration_sec=5.0)
             return
-        stamp = stamp_to_ns(msg.header.stamp)
+        stamp = stamp_to_ns(msg.header.stamp) - self.cfg.latency_ns(k)   # the instant seen
         if self.from_the_future(k, stamp):
             return
         seen = np.isfinite(pts).all(axis=1) & (pts[:, 2] >= self.min_conf)

@@ -1,7 +1,7 @@
 """Parameters of the ground station shared by camshift_node and trinocular_pose_node.
 
 The keys are those of config/ground_trinocular.yaml: `cameras.names` and per camera
-`cameras.<name>.{width,height,frame_id,K,D,R,t}`; `landmarks.names` and per landmark
+`cameras.<name>.{width,height,frame_id,K,D,R,t,latency}`; `landmarks.names` and per landmark
 `landmarks.<name>.{position,sample,hue,saturation,value}` (hue required unless there
 is a sample).
 """
@@ -57,5 +57,9 @@ def declare_cameras(node: Node, only: str | None = None) -> dict:
                 'world-to-camera rotation, 3x3 row-major (eq 16)'), size=9),
             Param(key + 't', T.DOUBLE_ARRAY, description='world-to-camera translation, m (eq 16)',
                   size=3),
+            Param(key + 'latency', T.DOUBLE, 0.0, (
+                'how much later than the instant it shows the camera stamps a frame, after '
+                'the first camera (uav_vs_calibrate rig --latency), s: taken off its stamps '
+                'before the cameras are matched'), -1.0, 1.0),
         ]
     return {**names, **declare(node, specs)}

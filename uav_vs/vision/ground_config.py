@@ -5,6 +5,7 @@ flat keys a node can declare:
 
     cameras.names                      [cam1, cam2, ...]
     cameras.<name>.{width, height, frame_id, K, D, R, t}   (see Camera.from_params)
+    cameras.<name>.latency             s its stamps come after the instant (optional, 0)
     landmarks.names                    [red, green, ...]    order = landmark index
     landmarks.radius                   sphere radius, m (optional, default 0.1)
     landmarks.<name>.position          [x, y, z] in base_link (FLU), m
@@ -40,6 +41,11 @@ class GroundConfig:
     saturation: np.ndarray   # (n, 2) int, 0..255
     value: np.ndarray        # (n, 2) int, 0..255
     radius: float = 0.1      # landmark sphere radius, m
+    latency: tuple[float, ...] = ()   # per camera: s its stamps come late (empty: none)
+
+    def latency_ns(self, k: int) -> int:
+        """Camera k's latency, ns (0 when none is set)."""
+        return int(round(self.latency[k] * 1e9)) if self.latency else 0
 
 
 def default_config_path(name: str = 'ground_trinocular.yaml') -> Path:
@@ -81,7 +87,15 @@ def load_ground_config(params: Mapping[str, object]) -> GroundConfig:
     radius = params.get('landmarks.radius', 0.1)
     if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not radius > 0:
         raise CalibrationError(f'landmarks.radius: expected a positive number, got {radius!r}')
-    return GroundConfig(cameras, names, layout, radius=float(radius), **ranges)
+    latency = tuple(_latency(params, f'cameras.{n}.latency') for n in cam_names)
+    return GroundConfig(cameras, names, layout, radius=float(radius), latency=latency, **ranges)
+
+
+def _latency(params: Mapping[str, object], key: str) -> float:
+    value = params.get(key, 0.0)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not abs(value) <= 1.0:
+        raise CalibrationError(f'{key}: expected a number of seconds in [-1, 1], got {value!r}')
+    return float(value)
 
 
 def flat_params(tree: Mapping, prefix: str = '') -> dict[str, object]:

@@ -81,6 +81,8 @@ class Rig:
                              'D': [float(v) for v in c.intrinsics.D],
                              'R': [float(v) for v in c.R.ravel()],
                              't': [float(v) for v in c.t]}
+            if self.latency is not None:
+                block[c.name]['latency'] = round(float(self.latency[c.name]), 4)
         return yaml.safe_dump({'cameras': block}, sort_keys=False, width=100)
 
 
