@@ -332,6 +332,19 @@ def test_a_camera_latency_is_taken_off_its_stamps_before_the_match(ros_node, pro
     assert np.linalg.norm(msg_to_pose(poses[0])[0] - truth_pos) < 1e-6
 
 
+def test_a_camera_of_the_rational_model_is_taken(ros_node, processes):
+    """cam1's distortion as 8 coefficients (the rational model uav_vs_calibrate writes;
+    k4-k6 zero, the same lens): the node starts and the pose is the true one."""
+    d8 = '[-0.118, 0.082, 0.0004, -0.0003, -0.018, 0.0, 0.0, 0.0]'
+    cfg, _, poses, _, pubs = _trinocular(ros_node, processes, '-p', f'cameras.cam1.D:={d8}')
+    truth_pos, truth_yaw = np.array([0.4, -0.3, 1.2]), 2.5
+    for pub, px in zip(pubs, _project_layout(cfg, truth_pos, truth_yaw)):
+        pts = np.column_stack([px, np.ones(len(px))])
+        pub.publish(points_to_polygon(pts, Header(stamp=ns_to_stamp(1_000_000_000))))
+    assert wait_for(lambda: len(poses) == 1, 10)
+    assert np.linalg.norm(msg_to_pose(poses[0])[0] - truth_pos) < 1e-6
+
+
 def test_a_silent_camera_warns_and_all_silent_is_an_error(ros_node, processes):
     """Landmarks from every camera: OK. cam3 stops: WARN naming it, poses go on from two
     cameras. All stop: ERROR. They come back: OK again."""

@@ -15,6 +15,7 @@ import shlex
 import subprocess
 import threading
 import time
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -388,15 +389,26 @@ def forward_vision(pub, autopilot: 'BareAutopilot', good: PoseStamped, bad: Pose
     return forwarded
 
 
-def test_vision_pose_is_forwarded_in_ned(ros_node, processes):
+@contextmanager
+def relaying_vision(ros_node, processes, kind: type, topic: str, *params: str):
+    """A relay forwarding `topic` (messages of `kind`) to a BareAutopilot, linked and
+    subscribed: (the autopilot, a Probe, the test's publisher on `topic`)."""
     autopilot = BareAutopilot()
     try:
         start_relay(processes, f'udpout:127.0.0.1:{autopilot.port}',
-                    'vision_pose_topic:=ground/pose', 'vision.position_std:=0.2')
+                    f'vision_pose_topic:={topic}', *params)
         probe = Probe(ros_node)
-        pub = ros_node.create_publisher(PoseStamped, '/ground/pose', 10)
+        pub = ros_node.create_publisher(kind, f'/{topic}', 10)
         probe.wait_diag(link='connected')
         assert wait_for(lambda: pub.get_subscription_count() > 0, 20)
+        yield autopilot, probe, pub
+    finally:
+        autopilot.close()
+
+
+def test_vision_pose_is_forwarded_in_ned(ros_node, processes):
+    with relaying_vision(ros_node, processes, PoseStamped, 'ground/pose',
+                         'vision.position_std:=0.2') as (autopilot, probe, pub):
         s = math.sqrt(0.5)   # nose north: ENU yaw +90 deg, NED yaw 0
         good = pose_to_msg([1.0, 2.0, 3.0], [0.0, 0.0, s, s],
                            Header(stamp=ns_to_stamp(1_700_000_000_250_000_000), frame_id='world'))
@@ -410,8 +422,6 @@ def test_vision_pose_is_forwarded_in_ned(ros_node, processes):
             assert abs(v.yaw) < 1e-6 and abs(v.roll) < 1e-6 and abs(v.pitch) < 1e-6
             assert math.isclose(v.covariance[0], 0.04, rel_tol=1e-6)   # (0.2 m)^2
         assert "frame_id 'map'" in processes.log('relay')
-    finally:
-        autopilot.close()
 
 
 def test_fused_odometry_is_forwarded_with_its_covariance(ros_node, processes):
@@ -419,14 +429,8 @@ def test_fused_odometry_is_forwarded_with_its_covariance(ros_node, processes):
     NED (x, y swapped, their correlation kept), roll and pitch (unknown to the filter:
     1e6) sent with the yaw's variance and uncorrelated; a covariance that is not one
     (negative eigenvalue) counted as malformed and not sent."""
-    autopilot = BareAutopilot()
-    try:
-        start_relay(processes, f'udpout:127.0.0.1:{autopilot.port}',
-                    'vision_pose_topic:=fused/odom', 'vision_pose_type:=odometry')
-        probe = Probe(ros_node)
-        pub = ros_node.create_publisher(Odometry, '/fused/odom', 10)
-        probe.wait_diag(link='connected')
-        assert wait_for(lambda: pub.get_subscription_count() > 0, 20)
+    with relaying_vision(ros_node, processes, Odometry, 'fused/odom',
+                         'vision_pose_type:=odometry') as (autopilot, probe, pub):
         cov = np.diag([0.04, 0.01, 0.09, 1e6, 1e6, 0.0025])
         cov[0, 1] = cov[1, 0] = 0.012           # east-north correlation 0.6
         cov[2, 5] = cov[5, 2] = 0.003           # up-yaw correlation 0.2
@@ -453,8 +457,6 @@ def test_fused_odometry_is_forwarded_with_its_covariance(ros_node, processes):
             expected[2, 5] = 0.003                # down-yaw (NED): both signs flip
             assert np.allclose(sent, expected, rtol=1e-6, atol=1e-9), sent
         assert 'positive semi-definite' in processes.log('relay')
-    finally:
-        autopilot.close()
 
 
 def _gcs_hears(transport: str, port: int, seconds: float) -> tuple[list, list]:

@@ -52,7 +52,9 @@ def declare_cameras(node: Node, only: str | None = None) -> dict:
             Param(key + 'frame_id', T.STRING, f'{name}_optical', 'optical frame of the camera'),
             Param(key + 'K', T.DOUBLE_ARRAY, description='intrinsics, 3x3 row-major (eq 15)',
                   size=9),
-            Param(key + 'D', T.DOUBLE_ARRAY, description='distortion k1 k2 p1 p2 k3', size=5),
+            Param(key + 'D', T.DOUBLE_ARRAY, description=(
+                "distortion in OpenCV's order, k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]]: "
+                '4, 5, 8, 12 or 14 numbers (uav_vs_calibrate writes 5 or 8)')),
             Param(key + 'R', T.DOUBLE_ARRAY, description=(
                 'world-to-camera rotation, 3x3 row-major (eq 16)'), size=9),
             Param(key + 't', T.DOUBLE_ARRAY, description='world-to-camera translation, m (eq 16)',
