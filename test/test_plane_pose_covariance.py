@@ -88,13 +88,18 @@ def test_the_fit_covariance_matches_monte_carlo(eye, target):
 def flight_poses(cfg):  # noqa: F811 (the fixture imported above)
     """The sample bag's flight (1 m hover, climb to 3 m, move 3.5 m and turn, descend)
     through the estimator: (its results, the drift covariance after each, the true
-    base_link R, p of each frame)."""
+    base_link R, p of each frame, the result and drift of a second estimator asked for no
+    covariance)."""
     scene = OnboardScene(cfg.camera, cfg.camera_to_body, seed=0)
     frames = [(jpeg_grey(img), R, p) for _, img, R, p in fly(scene, Trajectory(), 15.0)]
     exact_start = replace(cfg.params, init_position_sigma=1e-4, init_angle_sigma=1e-5)
-    est = PlanePoseEstimator(cfg.camera, exact_start, cfg.camera_to_body)
+    est, bare = (PlanePoseEstimator(cfg.camera, exact_start, cfg.camera_to_body)
+                 for _ in range(2))
     assert est.initialise(frames[0][0], cfg.initial_homography).ok
-    return [(est.update(gray), est.drift_covariance, R, p) for gray, R, p in frames[1:]]
+    assert bare.initialise(frames[0][0], cfg.initial_homography).ok
+    return [(est.update(gray), est.drift_covariance, R, p,
+             bare.update(gray, covariance=False), bare.drift_covariance)
+            for gray, R, p in frames[1:]]
 
 
 def test_over_a_flight_the_drift_grows_with_each_keyframe_and_the_covariance_bounds_the_error(
@@ -104,18 +109,29 @@ def test_over_a_flight_the_drift_grows_with_each_keyframe_and_the_covariance_bou
     simulator's truth, divided by their predicted standard deviation, have an RMS
     between 0.1 and 1 per axis: the drift model is a bound (1 if it were exact; the start
     is exact here, its sigmas set near zero)."""
-    assert all(r.ok for r, _, _, _ in flight_poses)
-    for r, _, _, _ in flight_poses:
+    assert all(r.ok for r, *_ in flight_poses)
+    for r, *_ in flight_poses:
         assert np.allclose(r.covariance, r.covariance.T)
         assert np.linalg.eigvalsh(r.covariance).min() > 0
-    drift = [np.trace(d[:3, :3]) for _, d, _, _ in flight_poses]
-    reanchored = [r.stats['reanchored'] for r, _, _, _ in flight_poses]
+    drift = [np.trace(d[:3, :3]) for _, d, *_ in flight_poses]
+    reanchored = [r.stats['reanchored'] for r, *_ in flight_poses]
     assert sum(reanchored) >= 5
     for a, b, grew in zip(drift, drift[1:], reanchored[1:]):
         assert (b > a) if grew else (b == a), (a, b, grew)
     z = np.array([(r.position - p) / np.sqrt(np.diag(r.covariance)[:3])
-                  for r, _, _, p in flight_poses])
+                  for r, _, _, p, *_ in flight_poses])
     rms = np.sqrt(np.mean(z ** 2, axis=0))
     print(f'position sd from {np.sqrt(drift[0] / 3):.4f} m (drift) to '
           f'{np.sqrt(drift[-1] / 3):.4f} m; error / sd RMS per axis {rms.round(2)}')
     assert np.all((rms > 0.1) & (rms < 1.0)), rms
+
+
+def test_without_a_covariance_asked_the_poses_and_the_drift_are_the_same(flight_poses):
+    """An estimator asked for no covariance (no one subscribes to onboard/pose_cov) gives
+    the same poses without one, and its drift grows as the other's: the fit's covariance is
+    still solved on the frames that re-anchor."""
+    for r, drift, _, _, bare, bare_drift in flight_poses:
+        assert bare.ok and bare.covariance is None
+        assert np.array_equal(bare.position, r.position)
+        assert np.array_equal(bare_drift, drift)
+    assert sum(bare.stats['reanchored'] for *_, bare, _ in flight_poses) >= 5

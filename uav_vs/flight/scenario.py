@@ -119,6 +119,11 @@ class Scenario:
     fused: bool = False
     blind: float = 0.0           # s
 
+    @property
+    def fused_external_nav(self) -> bool:
+        """Whether the autopilot navigates without GPS on the pose filter's fused/odom."""
+        return self.gps_denied and self.external_nav == 'fused'
+
 
 HOLD = Scenario('hold', 1.5, Setpoint((0.0, 0.0, 1.5), hold=5.0))
 SETPOINTS = Scenario('setpoints', 1.5, Setpoint((0.0, 0.0, 1.5)), (
@@ -148,7 +153,7 @@ def sitl_params(scenario: Scenario) -> tuple[Path, ...]:
     """The parameter files ArduPilot SITL flies `scenario` with, after its defaults."""
     if not scenario.gps_denied:
         return ()
-    return (GPS_DENIED_PARAMS, *((FUSED_NAV_PARAMS,) if scenario.external_nav == 'fused'
+    return (GPS_DENIED_PARAMS, *((FUSED_NAV_PARAMS,) if scenario.fused_external_nav
                                  else ()))
 
 
@@ -298,8 +303,7 @@ class _Mission:
 
     def _fused_nav(self) -> bool:
         """Whether the controller or the autopilot's EKF flies on the pose filter's estimate."""
-        s = self.scenario
-        return s.fused or (s.gps_denied and s.external_nav == 'fused')
+        return self.scenario.fused or self.scenario.fused_external_nav
 
     @property
     def _source(self) -> str:
@@ -412,8 +416,8 @@ class _Mission:
             self._start('link_monitor_node', 'link_monitor_node', [
                 '--params-file', str(default_config_path('link_monitor.yaml'))])
         if c.pose_filter is not None:
-            own_odometry = ['-p', "pose_filter.odometry_topic:=''"] if (
-                self.scenario.gps_denied and self.scenario.external_nav == 'fused') else []
+            own_odometry = (['-p', "pose_filter.odometry_topic:=''"]
+                            if self.scenario.fused_external_nav else [])
             self._start('pose_filter_node', 'pose_filter_node',
                         ['--params-file', str(c.pose_filter), *own_odometry])
         if c.frames is not None:
@@ -431,7 +435,7 @@ class _Mission:
                                    'ArduPilot SITL')
             lat, lon, alt = self.sitl.origin
             nav = (['-p', 'vision_pose_topic:=fused/odom', '-p', 'vision_pose_type:=odometry']
-                   if self.scenario.external_nav == 'fused' else
+                   if self.scenario.fused_external_nav else
                    ['-p', 'vision_pose_topic:=ground/pose'])
             relay_args = [*nav, '-p', f'ekf_origin:=[{lat:.7f}, {lon:.7f}, {alt:.2f}]']
         else:

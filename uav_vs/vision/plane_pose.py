@@ -208,8 +208,11 @@ class PlanePoseEstimator:
                                    'trials': 0, 'rms_px': 0.0, 'reanchored': True},
                             np.zeros((6, 6)))
 
-    def update(self, gray: np.ndarray) -> PlanePose:
-        """Pose for the next frame, or a tracking loss with the reason (state kept)."""
+    def update(self, gray: np.ndarray, covariance: bool = True) -> PlanePose:
+        """Pose for the next frame, or a tracking loss with the reason (state kept).
+
+        With `covariance` False the pose carries none (covariance None): the fit's is then
+        solved only on the frames that re-anchor, whose error the drift takes on."""
         p = self.params
         try:
             gray = self._check(gray)
@@ -220,13 +223,14 @@ class PlanePoseEstimator:
         stats: dict = {'sharpness': round(sharpness(gray, p.blur_level), 1)}
         if stats['sharpness'] < p.min_sharpness:
             return self._lost(self._blurred(stats['sharpness']), stats)
-        result = self._track(gray, self._motion @ self._H_prev, self._H_prev, stats)
+        result = self._track(gray, self._motion @ self._H_prev, self._H_prev, stats,
+                             covariance)
         if isinstance(result, str) and 0 < p.relocalise_after <= self.lost_frames + 1:
             H = self._relocalise(gray)
             if H is not None:
                 tracks = self._kf_px, self._xyz
                 self._reseed_overlap(H)
-                retry = self._track(gray, H, H, dict(stats))
+                retry = self._track(gray, H, H, dict(stats), covariance)
                 if not isinstance(retry, str):
                     self.relocalisations += 1
                     retry.stats.update(relocalised=True, **self._counters())
@@ -235,8 +239,8 @@ class PlanePoseEstimator:
                 result = f'{result}; relocalised, then {retry}'
         return self._lost(result, stats) if isinstance(result, str) else result
 
-    def _track(self, gray: np.ndarray, H_pred: np.ndarray, H_prev: np.ndarray, stats: dict
-               ) -> PlanePose | str:
+    def _track(self, gray: np.ndarray, H_pred: np.ndarray, H_prev: np.ndarray, stats: dict,
+               covariance: bool) -> PlanePose | str:
         """Keyframe tracking from the predicted keyframe-to-frame homography H_pred; H_prev
         is the homography the motion model starts from. The pose, or why there is none."""
         p = self.params
@@ -271,13 +275,15 @@ class PlanePoseEstimator:
         self._motion = est.H @ np.linalg.inv(H_prev)
         self._H_prev, self._kf_px, self._xyz = est.H, kf_px, xyz
         self.lost_frames = 0
-        fit, sigma = fit_covariance(
-            self.camera.K, R, t, xyz, pts, body_pose(R, t, self.camera_to_body)[1],
-            p.pixel_sigma_floor)
-        stats['pixel_sigma'] = round(sigma, 3)
-        result = self._result(R, t, stats, fit)
-        stats['reanchored'] = bool(self._needs_reanchor(pts))
-        if stats['reanchored']:
+        stats['reanchored'] = reanchor = bool(self._needs_reanchor(pts))
+        fit = None
+        if covariance or reanchor:
+            fit, sigma = fit_covariance(
+                self.camera.K, R, t, xyz, pts, body_pose(R, t, self.camera_to_body)[1],
+                p.pixel_sigma_floor)
+            stats['pixel_sigma'] = round(sigma, 3)
+        result = self._result(R, t, stats, fit if covariance else None)
+        if reanchor:
             # Survivors keep their plane points (anchoring); new features get theirs
             # from the current estimate, and its error with them.
             self._kf_px = pts
@@ -369,16 +375,17 @@ class PlanePoseEstimator:
         stats.update(self._counters())
         return PlanePose(False, reason=reason, stats=stats)
 
-    def _result(self, R: np.ndarray, t: np.ndarray, stats: dict, fit: np.ndarray
+    def _result(self, R: np.ndarray, t: np.ndarray, stats: dict, fit: np.ndarray | None
                 ) -> PlanePose:
-        """The frame's pose, its covariance that of the fit `fit` and of the map."""
+        """The frame's pose, its covariance that of the fit `fit` and of the map (None
+        without `fit`)."""
         R_wc, c = body_pose(R, t, None)
         R_w, pos = body_pose(R, t, self.camera_to_body)
         self._centre = c
         stats.update(self._counters())
         return PlanePose(True, pos, Rotation.from_matrix(R_w).as_quat(), R_w, c, R_wc,
                          plane_homography(self.camera.K, R, t), '', stats,
-                         fit + self._map_cov)
+                         None if fit is None else fit + self._map_cov)
 
 
 class KeyframeWarp:
