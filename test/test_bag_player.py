@@ -430,7 +430,7 @@ def test_best_effort_recording_subscribes_best_effort_to_a_reliable_publisher(ro
     rec = start('bag_record', ['-o', str(out), '--best-effort', 'chat'], tmp_path / 'logs',
                 'record')
     chat = ros_node.create_publisher(String, '/chat', QoSProfile(depth=100))
-    sent = [String(data=f'hello {k}') for k in range(20)]
+    sent = [String(data=f'hello {k}') for k in range(100)]
     try:
         assert wait_for(chat.get_subscription_count, 20), \
             (tmp_path / 'logs' / 'record.log').read_text()
@@ -446,9 +446,10 @@ def test_best_effort_recording_subscribes_best_effort_to_a_reliable_publisher(ro
     finally:
         graph.stop([rec])
     # Best effort: what went out before the recorder's side had matched the publisher
-    # (the publisher may see the subscription first) is lost; from then on, nothing.
-    got = [deserialize_message(r, String) for r in bag_messages(out)['/chat']]
-    assert got and got == sent[len(sent) - len(got):], got
+    # (the publisher may see the subscription first) is lost, and on a busy machine a
+    # message may be now and then; what is recorded came in the order sent, each once.
+    got = [sent.index(deserialize_message(r, String)) for r in bag_messages(out)['/chat']]
+    assert len(got) >= 10 and got == sorted(set(got)), got
     meta = yaml.safe_load((out / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     offered = meta['topics_with_message_count'][0]['topic_metadata']['offered_qos_profiles']
     assert offered[0]['reliability'] == 'reliable'

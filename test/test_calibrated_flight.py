@@ -16,9 +16,9 @@ from uav_vs.calibrate import main
 from uav_vs.flight.report import FlightReport
 from uav_vs.flight.scenario import Configs, fly
 from uav_vs.sim.board_scene import BoardScene, close_ups, on_the_ground, through_the_volume
+from uav_vs.sim.calibration_truth import lens_error, pose_error
 from uav_vs.sim.ground_scene import GroundScene, Pose, rot_z
 from uav_vs.vision.calibration import Board
-from uav_vs.vision.camera import Camera
 from uav_vs.vision.ground_config import default_config_path, load_ground_config, read_params_file
 
 from test_closed_loop import SCENARIO
@@ -73,22 +73,6 @@ def flight_volume() -> np.ndarray:
     return np.stack(np.meshgrid(*axes), -1).reshape(-1, 3)
 
 
-def lens_error(true: Camera, ours: Camera) -> np.ndarray:
-    """How far our K and D put each pixel of the image (every 4th) from where the true
-    lens does, px: the pixel's ray through our lens, turned by the one rotation that best
-    aligns our camera frame with the true one (which the principal point trades with R),
-    projected through the true lens."""
-    u, v = np.meshgrid(np.arange(0, true.width, 4.0), np.arange(0, true.height, 4.0))
-    pixels = np.column_stack([u.ravel(), v.ravel()])
-    ours_rays, true_rays = (np.column_stack([c.normalize(pixels), np.ones(len(pixels))])
-                            for c in (ours, true))
-    a, b = (r / np.linalg.norm(r, axis=1, keepdims=True) for r in (ours_rays, true_rays))
-    U, _, Vt = np.linalg.svd(b.T @ a)
-    turn = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    lens = Camera(K=true.K, D=true.D)
-    return np.linalg.norm(lens.project(a @ turn.T) - pixels, axis=1)
-
-
 def test_the_calibrated_rig_matches_the_true_one(calibrated):
     """Every point of the flight volume each camera sees reprojects within 0.8 px of the
     true camera's pixel (median under 0.25 px), every pixel of the image within 0.6 px
@@ -103,8 +87,7 @@ def test_the_calibrated_rig_matches_the_true_one(calibrated):
         seen = np.all((truth > 0) & (truth < (t.width, t.height)), axis=1)
         error = np.linalg.norm(o.project(points[seen]) - truth[seen], axis=1)
         lens = lens_error(t, o)
-        turn = math.degrees(np.linalg.norm(cv2.Rodrigues(o.R @ t.R.T)[0]))
-        offset = np.linalg.norm(o.t - t.t)
+        turn, offset = pose_error(t, o)
         print(f'{t.name}: the flight volume reprojected within {error.max():.3f} px (median '
               f'{np.median(error):.3f}), the image through our lens within {lens.max():.3f} '
               f'px (median {np.median(lens):.3f}), R {turn:.3f} deg, t {1000 * offset:.1f} mm')

@@ -35,13 +35,17 @@ def test_only_segments_no_process_holds_are_removed(tmp_path):
     assert not gone.exists()
 
 
-def _segments_of(pid: int) -> list[Path]:
-    """The Fast DDS segments whose lock process `pid` holds (from /proc/locks)."""
-    inodes = {int(fields[5].rsplit(':', 1)[1]) for fields in
-              (line.split() for line in Path('/proc/locks').read_text().splitlines())
-              if fields[1] == 'FLOCK' and fields[4] == str(pid)}
-    return [dds_shm.SHM_DIR / p.name[:-3] for p in dds_shm.SHM_DIR.glob('fastrtps_*_el')
-            if 'port' not in p.name and p.stat().st_ino in inodes]
+def test_a_process_removes_the_segments_it_holds_and_no_other(tmp_path):
+    """remove_own (a node's last step before it exits) takes this process's segments, the
+    ones whose lock it holds, and leaves another process's and an unheld one."""
+    mine = _segment(tmp_path, 'fastrtps_0123456789abcdef', 0)
+    unheld = _segment(tmp_path, 'fastrtps_fedcba9876543210', 0)
+    with open(f'{mine}_el', 'ab') as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        assert dds_shm.held_by(os.getpid(), tmp_path) == [mine]
+        assert dds_shm.held_by(os.getpid() + 1, tmp_path) == []
+        assert dds_shm.remove_own(tmp_path) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == [unheld.name, f'{unheld.name}_el']
 
 
 @pytest.fixture
@@ -54,7 +58,7 @@ def controller(tmp_path):
         started.append(proc)
         assert wait_for(lambda: 'pose mode' in proc.log_path.read_text(), 30), \
             proc.log_path.read_text()
-        return proc, _segments_of(proc.pid)
+        return proc, dds_shm.held_by(proc.pid)
     yield start
     graph.stop(started)
 

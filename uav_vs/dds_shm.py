@@ -6,7 +6,7 @@ while it lives, and removes both when it is destroyed. A process killed (SIGKILL
 crash) never does, and /dev/shm is memory: a test run or a long session that kills node
 processes fills it until the kernel's OOM killer picks a process. `remove_orphaned`
 removes the segments no living process holds, by the rule of Fast DDS's own
-`fastdds shm clean`.
+`fastdds shm clean`; `remove_own`, for a process about to exit, removes those it holds.
 """
 import fcntl
 import os
@@ -49,3 +49,34 @@ def remove_orphaned(shm_dir: Path = SHM_DIR, min_age_s: float = MIN_AGE_S) -> in
             path.unlink(missing_ok=True)
         removed += 1
     return removed
+
+
+def held_by(pid: int, shm_dir: Path = SHM_DIR) -> list[Path]:
+    """The Fast DDS segments whose lock process `pid` holds (its flocks in /proc/locks);
+    none where /proc/locks cannot be read."""
+    try:
+        lines = Path('/proc/locks').read_text().splitlines()
+    except OSError:
+        return []
+    inodes = {int(fields[5].rsplit(':', 1)[1]) for fields in map(str.split, lines)
+              if len(fields) > 5 and fields[1] == 'FLOCK' and fields[4] == str(pid)}
+    out = []
+    for lock in shm_dir.glob('fastrtps_*_el'):
+        try:
+            if _SEGMENT_LOCK.match(lock.name) and lock.stat().st_ino in inodes:
+                out.append(shm_dir / lock.name[:-3])
+        except FileNotFoundError:
+            continue
+    return out
+
+
+def remove_own(shm_dir: Path = SHM_DIR) -> int:
+    """Remove the segments this process holds; how many. For a process about to exit
+    whose DDS participant may not have been destroyed yet (it is, once nothing holds its
+    nodes' handles): the memory stays mapped for whoever has it open, and no living
+    process owns the files after the exit."""
+    own = held_by(os.getpid(), shm_dir)
+    for segment in own:
+        for path in (segment, segment.with_name(f'{segment.name}_el')):
+            path.unlink(missing_ok=True)
+    return len(own)

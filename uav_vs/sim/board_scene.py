@@ -1,15 +1,17 @@
-"""A printed chessboard held in the ground cameras' view, rendered through each camera's
-own lens, for calibrating the simulated rig as a real one is calibrated
-(uav_vs.vision.calibration, uav_vs.vision.rig_calibration).
+"""A printed chessboard or ChArUco board held in the ground cameras' view, rendered
+through each camera's own lens, for calibrating the simulated rig as a real one is
+calibrated (uav_vs.vision.calibration, uav_vs.vision.rig_calibration).
 
 As in uav_vs.sim.ground_scene, rendering is exact projection: every pixel is the mean of
 `supersample` x `supersample` viewing rays through it (`Camera.normalize`, the inverse
-of the distortion), each intersected with the board's plane and coloured by the square
-it meets (printed black and white, lit, with a white margin of one square), so the
-corners lie exactly where the camera model projects them and the squares' edges are
-anti-aliased as a lens and sensor blur them. Outside the board the camera sees the
-ground scene's background (grey); the board's back is plain grey card. Gaussian sensor
-noise is added.
+of the distortion), each intersected with the board's plane and coloured by what is
+printed where it meets it (black and white, lit, with a white margin of one square): a
+chessboard's square, or the pixel of OpenCV's own drawing of the ChArUco board
+(CharucoBoard.generateImage, TEXELS per square, so every edge of a square falls on a
+texel's edge). The corners lie exactly where the camera model projects them and the
+edges are anti-aliased as a lens and sensor blur them. Outside the board the camera sees
+the ground scene's background (grey); the board's back is plain grey card. Gaussian
+sensor noise is added.
 
 The poses a user moves the board through to calibrate a rig: `close_ups` before each
 camera alone (its intrinsics), `through_the_volume` where the cameras see it together
@@ -28,16 +30,19 @@ from uav_vs.vision.camera import Camera
 from uav_vs.vision.rig_calibration import BOARD_TO_WORLD
 
 INK, PAPER, CARD = 40.0, 215.0, 120.0      # grey levels of a black square, white, the back
+TEXELS = 64                                 # a ChArUco board's drawing, pixels per square
 
 
 class BoardScene:
-    """Renders `board` (a chessboard) at a pose in the world into each camera's image."""
+    """Renders `board` (a chessboard or a ChArUco board) at a pose in the world into each
+    camera's image."""
 
     def __init__(self, cameras: Sequence[Camera], board: Board,
                  backgrounds: Sequence[np.ndarray] | None = None, supersample: int = 3,
                  noise_sigma: float = 2.0, seed: int = 0):
-        if board.kind != 'chessboard':
-            raise ValueError(f'board kind: the scene renders a chessboard, got {board.kind!r}')
+        if board.kind not in ('chessboard', 'charuco'):
+            raise ValueError(f'board kind: the scene renders a chessboard or a ChArUco board, '
+                             f'got {board.kind!r}')
         self.cameras = list(cameras)
         self.board = board
         self.supersample = supersample
@@ -46,8 +51,18 @@ class BoardScene:
                               for b in backgrounds] if backgrounds is not None else
                              [np.full((c.height, c.width), 128, np.uint8) for c in cameras])
         s = board.square
-        # the printed sheet: the squares and a white margin of one square, board frame, m
-        self._sheet = (-2 * s, -2 * s, (board.cols) * s, (board.rows) * s)
+        # the squares (board frame, m: a chessboard's first inner corner, a ChArUco
+        # board's outer corner is the origin) and the printed sheet, a white margin of one
+        # square around them
+        x0 = y0 = -s if board.kind == 'chessboard' else 0.0
+        self._squares = (x0, y0, x0 + board.cols * s, y0 + board.rows * s)
+        self._sheet = (x0 - s, y0 - s, x0 + (board.cols + 1) * s, y0 + (board.rows + 1) * s)
+        self._texture = None
+        if board.kind == 'charuco':
+            drawing = board.charuco().generateImage((board.cols * TEXELS, board.rows * TEXELS))
+            if board.inverted:
+                drawing = 255 - drawing
+            self._texture = INK + (PAPER - INK) / 255.0 * drawing.astype(np.float32)
         self._noise = GaussianNoise(noise_sigma, (max(c.height for c in cameras),
                                                   max(c.width for c in cameras)),
                                     np.random.default_rng(seed))
@@ -101,16 +116,28 @@ class BoardScene:
         x_lo, y_lo, x_hi, y_hi = self._sheet
         on = ((depth > 0) & (hit[0] >= x_lo) & (hit[0] <= x_hi)
               & (hit[1] >= y_lo) & (hit[1] <= y_hi))
-        s, board = self.board.square, self.board
-        col, row = np.floor(hit[0] / s), np.floor(hit[1] / s)
-        squares = (col >= -1) & (col <= board.cols - 2) & (row >= -1) & (row <= board.rows - 2)
-        black = squares & ((col + row) % 2 == 1)      # OpenCV's first corner: see Board
         front = normal @ t_cb > 0          # the camera is on the printed side
-        level = np.where(black, INK, PAPER) if front else np.full(black.shape, CARD)
+        level = self._printed(hit[:2], on) if front else np.full(on.shape, CARD)
         h, w = y1 - y0, x1 - x0
         back = np.repeat(np.repeat(background, n, axis=0), n, axis=1).reshape(-1)
         value = np.where(on, level, back).reshape(h, n, w, n)
         return value.mean(axis=(1, 3))
+
+    def _printed(self, xy: np.ndarray, on: np.ndarray) -> np.ndarray:
+        """Grey level printed at board points `xy` (2, N), m; PAPER off the squares and
+        where `on` is False."""
+        s, board = self.board.square, self.board
+        x0, y0, x1, y1 = self._squares
+        inside = on & (xy[0] >= x0) & (xy[0] < x1) & (xy[1] >= y0) & (xy[1] < y1)
+        level = np.full(on.shape, PAPER, np.float32)
+        if self._texture is None:
+            col, row = np.floor(xy[:, inside] / s)
+            level[inside] = np.where((col + row) % 2 == 1, INK, PAPER)   # see Board
+        else:
+            u, v = np.floor(xy[:, inside] / s * TEXELS).astype(np.int64)
+            level[inside] = self._texture[np.minimum(v, board.rows * TEXELS - 1),
+                                          np.minimum(u, board.cols * TEXELS - 1)]
+        return level
 
 
 def _subpixel_rays(cam: Camera, n: int) -> np.ndarray:
@@ -143,17 +170,41 @@ def in_front_of(camera: Camera, board: Board, pixel: Sequence[float], distance: 
 
 def close_ups(camera: Camera, board: Board, count: int, rng: np.random.Generator,
               distance: tuple[float, float] = (2.0, 3.0), tilt_deg: tuple[float, float] = (15, 45),
-              margin: float = 0.2) -> list[np.ndarray]:
+              margin: float = 0.2, whole: float | None = None) -> list[np.ndarray]:
     """Board poses for one camera's intrinsics: `distance` m before it, its centre anywhere
-    but the image's outer `margin`, tilted `tilt_deg` about a random axis."""
+    but the image's outer `margin` (a fraction of the image), tilted `tilt_deg` about a
+    random axis. With `whole` (px), a board that would cross the image's edge is slid
+    back along it until every point lies that far inside, and a pose that cannot fit is
+    drawn again: a board seen whole, as far out as the image goes (a board aimed at a
+    corner ends in it), as a user fills the image with a chessboard."""
     out = []
     size = np.array([camera.width, camera.height], float)
-    for _ in range(count):
+    while len(out) < count:
         pixel = rng.uniform(margin * size, (1 - margin) * size)
         axis = rng.normal(size=3)
         rvec = axis / np.linalg.norm(axis) * np.radians(rng.uniform(*tilt_deg))
-        out.append(in_front_of(camera, board, pixel, rng.uniform(*distance), rvec))
+        depth = rng.uniform(*distance)
+        T = (in_front_of(camera, board, pixel, depth, rvec) if whole is None else
+             _slid_inside(camera, board, pixel, depth, rvec, whole))
+        if T is not None:
+            out.append(T)
     return out
+
+
+def _slid_inside(camera: Camera, board: Board, pixel: np.ndarray, distance: float,
+                 rvec: np.ndarray, inset: float, tries: int = 5) -> np.ndarray | None:
+    """in_front_of's pose, its centre's pixel moved until every point of the board lies
+    `inset` px inside the image (None if it does not within `tries` moves)."""
+    objects = board.object_points().astype(np.float64)
+    far = np.array([camera.width, camera.height], float) - 1 - inset
+    for _ in range(tries):
+        T = in_front_of(camera, board, pixel, distance, rvec)
+        px = camera.project(objects @ T[:3, :3].T + T[:3, 3])
+        under, over = inset - px.min(axis=0), px.max(axis=0) - far
+        if (under <= 0).all() and (over <= 0).all():
+            return T
+        pixel = pixel + np.maximum(under, 0) - np.maximum(over, 0)
+    return None
 
 
 def through_the_volume(board: Board, count: int, rng: np.random.Generator,
