@@ -193,9 +193,9 @@ class HomographyPoseNode(Node):
 
     def process(self, gray, header: Header, H0: np.ndarray | None) -> None:
         start = time.perf_counter()
+        with_covariance = self.pose_cov_pub.get_subscription_count() > 0
         if self.estimator.initialised:
-            result = self.estimator.update(
-                gray, covariance=self.pose_cov_pub.get_subscription_count() > 0)
+            result = self.estimator.update(gray, covariance=with_covariance)
         else:
             result = self.estimator.initialise(gray, H0)
             if result.ok:
@@ -210,7 +210,7 @@ class HomographyPoseNode(Node):
         self.counts['poses'] += 1
         out = Header(stamp=header.stamp, frame_id=self.frame_id)
         self.pose_pub.publish(pose_to_msg(result.position, result.quaternion, out))
-        if result.covariance is not None and self.pose_cov_pub.get_subscription_count():
+        if with_covariance:
             self.pose_cov_pub.publish(pose_cov_to_msg(result.position, result.quaternion,
                                                       result.covariance, out))
 
