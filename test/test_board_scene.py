@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from uav_vs.sim.board_scene import BoardScene, in_front_of
+from uav_vs.sim.board_scene import BoardScene, in_front_of, on_the_ground
 from uav_vs.vision.calibration import Board, detect
 from uav_vs.vision.camera import Camera
 from uav_vs.vision.ground_config import default_config_path, load_ground_config, read_params_file
@@ -37,6 +37,27 @@ def test_the_corners_are_found_where_each_camera_projects_them(scene, distance):
         rms = np.sqrt(np.mean(np.sum(error ** 2, axis=1)))
         assert len(det.ids) == 54 and rms < 0.1, (cam.name, rms)
         assert np.all(np.abs(error.mean(axis=0)) < 0.03), (cam.name, error.mean(axis=0))
+
+
+def test_the_board_on_the_ground_is_found_where_the_cameras_project_it(scene):
+    """The view that fixes the world frame: the board flat at the origin, 7-8 m from the
+    cameras, its squares 5-10 px. Where a camera finds it whole (cam1 and cam3; cam2 sees
+    it too edge-on), RMS under 0.11 px and mean offset under 0.03 px. A bias here turns
+    the whole rig: refined in the narrow window alone, cam3's corners sat 0.04 px off
+    on average, and the board's pose from them 0.13 deg off about the vertical."""
+    T = on_the_ground()
+    found = []
+    for cam, image in zip(scene.cameras, scene.render(T)):
+        det = detect(BOARD, image)
+        if det is None:
+            continue
+        found.append(cam.name)
+        truth = cam.project(BOARD.object_points() @ T[:3, :3].T + T[:3, 3])[det.ids]
+        error = det.points - truth
+        rms = np.sqrt(np.mean(np.sum(error ** 2, axis=1)))
+        assert rms < 0.11, (cam.name, rms)
+        assert np.all(np.abs(error.mean(axis=0)) < 0.03), (cam.name, error.mean(axis=0))
+    assert len(found) >= 2, found
 
 
 def test_the_board_seen_from_behind_is_plain_card(scene):
