@@ -172,20 +172,21 @@ def rig_4x100() -> None:
                opencv_worst_t_error_mm=round(worst_t_mm(theirs), 2))
 
 
-def simulated_rig() -> None:
+def simulated_rig(draw: int = 0) -> None:
+    """`draw` picks another random set of poses (docs/calibration.md compares five)."""
     cameras = load_ground_config(read_params_file(default_config_path())).cameras
     hand = Board('chessboard', 11, 16, 0.045)       # an A1 sheet, held 1-2.5 m away
     waved = Board('chessboard', 7, 10, 0.12)        # an A0 sheet
     intrinsics = {}
     for k, cam in enumerate(cameras):
         scene = BoardScene([cam], hand, seed=1 + k)
-        poses = close_ups(cam, hand, 150, np.random.default_rng(7 + k), distance=(1.0, 2.5),
-                          tilt_deg=(15, 60), margin=0.0, whole=10)
+        poses = close_ups(cam, hand, 150, np.random.default_rng(7 + 10 * draw + k),
+                          distance=(1.0, 2.5), tilt_deg=(15, 60), margin=0.0, whole=10)
         found = {str(i): d for i, T in enumerate(poses)
                  if (d := detect(hand, scene.render(T)[0])) is not None}
         intrinsics[cam.name] = calibrate_camera(hand, found, (cam.width, cam.height))
     scene = BoardScene(cameras, waved, supersample=6, seed=1)
-    poses = [on_the_ground(), *through_the_volume(waved, 240, np.random.default_rng(11))]
+    poses = [on_the_ground(), *through_the_volume(waved, 240, np.random.default_rng(11 + draw))]
     detections: dict[str, dict] = {c.name: {} for c in cameras}
     for i, T in enumerate(poses):
         for cam, image in zip(cameras, scene.render(T)):
